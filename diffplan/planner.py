@@ -1,0 +1,210 @@
+"""On-the-fly planning (Algorithm 1 of the paper) as one pure, jit-able JAX function.
+
+``rollout(task, apply_fn, params, schedule, keys, episodes, config)`` runs a batch of episodes to
+the end: at each move the planner may (re-)plan by in-painting the path and goal channels given
+the current condition channels and the instruction, ``task.psi`` turns the plan into the next
+action, the world steps and the agent observes more. The loop is a ``lax.while_loop`` over moves
+(at most ``task.max_steps``) that stops as soon as every episode is done; finished episodes are
+frozen by the task's ``step``. Planning is skipped (``lax.cond``) on moves where no episode needs a
+plan, so one-shot and k-shot modes do not pay for plans they do not make.
+
+Modes (``PlannerConfig.mode``):
+  one_shot    plan once at t=0 and follow that plan with psi to the end.
+  k_shot      plan at t=0 and again each time the agent reaches the current goal estimate, at
+              most k plans in all.
+  on_the_fly  re-plan from pure noise before every move (the paper's Algorithm 1).
+  warm_start  on-the-fly, but every re-plan after the first resumes from the previous plan
+              re-noised to step ``warm_start_step`` of the ``num_steps`` schedule, so it costs
+              ``num_steps - warm_start_step`` denoiser calls instead of ``num_steps``.
+
+Every episode uses its own PRNG key: an episode's result does not depend on what else is in the
+batch (or on how an evaluation is chunked).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from diffplan.sampler import denoiser_calls, sample
+from diffplan.schedule import Schedule
+
+MODES = ("one_shot", "k_shot", "on_the_fly", "warm_start")
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerConfig:
+    """How to plan (hashable; a static argument of the jitted rollout).
+
+    mode: one of MODES. num_steps: denoising steps of a full plan. eta: 0 = DDIM, 1 = DDPM-like.
+    k: plans per episode in k_shot mode. warm_start_step: steps skipped by warm re-plans.
+    clip_x0: clip the predicted x0 to [-1, 1] during sampling. record_plans: also return the
+    plan used at every move (memory B x T x H x W x G: for figures, small batches only).
+    """
+
+    mode: str = "on_the_fly"
+    num_steps: int = 10
+    eta: float = 0.0
+    k: int = 2
+    warm_start_step: int = 8
+    clip_x0: bool = True
+    record_plans: bool = False
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"unknown planner mode {self.mode!r}; expected one of {MODES}")
+        if self.num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
+        if self.k < 1:
+            raise ValueError(f"k must be >= 1, got {self.k}")
+        if not 0 <= self.warm_start_step < self.num_steps:
+            raise ValueError(
+                f"warm_start_step must be in 0..num_steps-1={self.num_steps - 1}, "
+                f"got {self.warm_start_step}")
+        if self.eta < 0:
+            raise ValueError(f"eta must be >= 0, got {self.eta}")
+
+    @property
+    def full_plan_calls(self) -> int:
+        return denoiser_calls(self.num_steps, None)
+
+    @property
+    def warm_plan_calls(self) -> int:
+        return denoiser_calls(self.num_steps, self.warm_start_step)
+
+
+@struct.dataclass
+class Rollout:
+    """What happened in a batch of episodes.
+
+    final_state: the task's state pytree (B, ...) at the end.
+    positions: int32 (B, T + 1, 2) the agent's cell after each move (held after the end).
+    steps: int32 (B,) moves taken.  done: bool (B,) episode over.
+    denoiser_calls: int32 (B,) denoiser evaluations spent on the episode.
+    num_plans: int32 (B,) plans made.
+    first_plan: float32 (B, H, W, G) the plan made at t=0 (for the paper's plan metrics).
+    plans: float32 (B, T, H, W, G) the plan followed at each move, if record_plans (else None).
+    """
+
+    final_state: Any
+    positions: jax.Array
+    steps: jax.Array
+    done: jax.Array
+    denoiser_calls: jax.Array
+    num_plans: jax.Array
+    first_plan: jax.Array
+    plans: Any = None
+
+
+def make_planner(task, apply_fn: Callable, params, schedule: Schedule, config: PlannerConfig):
+    """Returns plan(keys (B,), states, tokens (B, L), x_prev (B,H,W,G) or None, warm: bool)
+    -> plans float32 (B, H, W, G): in-paints path and goal given each state's condition."""
+    c = task.num_cond_channels
+    g = task.num_gen_channels
+    known_mask = (jnp.arange(c + g) < c)
+
+    def plan_one(key, condition, tokens, x_prev, warm):
+        def denoise(x_t, t):
+            eps = apply_fn(params, x_t, t, tokens[None])
+            return jnp.concatenate([jnp.zeros(x_t.shape[:-1] + (c,), eps.dtype), eps], axis=-1)
+
+        x_known = jnp.concatenate(
+            [condition, jnp.zeros(condition.shape[:-1] + (g,), condition.dtype)], axis=-1)[None]
+        kwargs = {}
+        if warm:
+            kwargs = dict(x_init=jnp.concatenate([condition, x_prev], axis=-1)[None],
+                          start_step=config.warm_start_step)
+        x0 = sample(denoise, schedule, key, x_known, known_mask, num_steps=config.num_steps,
+                    eta=config.eta, clip_x0=config.clip_x0, **kwargs)
+        return x0[0, ..., c:]
+
+    def plan(keys, states, tokens, x_prev=None, warm=False):
+        conditions = jax.vmap(task.condition)(states)
+        if x_prev is None:
+            x_prev = jnp.zeros(conditions.shape[:-1] + (g,), conditions.dtype)
+        return jax.vmap(lambda k, cond, tok, xp: plan_one(k, cond, tok, xp, warm))(
+            keys, conditions, tokens, x_prev)
+
+    return plan
+
+
+def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes,
+            config: PlannerConfig) -> Rollout:
+    """Runs a batch of episodes with the diffusion planner; pure and jit-able.
+
+    Args:
+      task: a diffplan.task.Task (static).
+      apply_fn: (params, x_t (B,H,W,C+G), t (B,), tokens (B,L)) -> eps (B,H,W,G).
+      params: the denoiser's parameters.
+      schedule: the diffusion schedule.
+      keys: (B,) PRNG keys, one per episode.
+      episodes: the task's episode pytree with a leading batch axis B.
+      config: PlannerConfig (static).
+    Returns: a Rollout.
+    """
+    plan_fn = make_planner(task, apply_fn, params, schedule, config)
+    v_done = jax.vmap(task.done)
+    states = jax.vmap(task.reset)(episodes)
+    tokens = jax.vmap(task.tokens)(episodes)
+    batch = tokens.shape[0]
+    t_max = task.max_steps
+
+    def keys_at(t):
+        return jax.vmap(lambda k: jax.random.fold_in(k, t))(keys)
+
+    plan = first_plan = plan_fn(keys_at(0), states, tokens)
+    done = v_done(states)
+    calls = jnp.where(done, 0, config.full_plan_calls).astype(jnp.int32)
+    num_plans = (~done).astype(jnp.int32)
+    start = jax.vmap(task.position)(states)
+    positions = jnp.broadcast_to(start[:, None, :], (batch, t_max + 1, 2)).astype(jnp.int32)
+    plans = (jnp.zeros((batch, t_max) + plan.shape[1:], plan.dtype)
+             if config.record_plans else None)
+
+    warm = config.mode == "warm_start"
+    per_replan_calls = config.warm_plan_calls if warm else config.full_plan_calls
+
+    def needs_plan(t, states, plan, num_plans):
+        active = ~v_done(states)
+        if config.mode in ("on_the_fly", "warm_start"):
+            return active & (t > 0)
+        if config.mode == "k_shot":
+            reached = jax.vmap(task.at_goal_estimate)(states, plan)
+            return active & (t > 0) & reached & (num_plans < config.k)
+        return jnp.zeros_like(active)  # one_shot
+
+    def body(carry):
+        t, states, plan, positions, calls, num_plans, steps, plans = carry
+        need = needs_plan(t, states, plan, num_plans)
+        new_plan = jax.lax.cond(
+            jnp.any(need),
+            lambda: plan_fn(keys_at(t), states, tokens, plan if warm else None, warm),
+            lambda: plan)
+        plan = jnp.where(need[:, None, None, None], new_plan, plan)
+        calls = calls + need * per_replan_calls
+        num_plans = num_plans + need
+        if plans is not None:
+            plans = plans.at[:, t].set(plan)
+        actions = jax.vmap(task.psi)(states, plan)
+        steps = steps + ~v_done(states)
+        states = jax.vmap(task.step)(states, actions)
+        positions = positions.at[:, t + 1].set(jax.vmap(task.position)(states))
+        return t + 1, states, plan, positions, calls, num_plans, steps, plans
+
+    def cond(carry):
+        t, states = carry[0], carry[1]
+        return (t < t_max) & ~jnp.all(v_done(states))
+
+    steps = jnp.zeros((batch,), jnp.int32)
+    carry = (jnp.int32(0), states, plan, positions, calls, num_plans, steps, plans)
+    _, states, _, positions, calls, num_plans, steps, plans = jax.lax.while_loop(cond, body, carry)
+    # Positions after an episode ended repeat its final cell.
+    final = jax.vmap(task.position)(states)
+    idx = jnp.arange(t_max + 1)[None, :]
+    positions = jnp.where((idx > steps[:, None])[..., None], final[:, None, :], positions)
+    return Rollout(final_state=states, positions=positions, steps=steps.astype(jnp.int32),
+                   done=v_done(states), denoiser_calls=calls.astype(jnp.int32),
+                   num_plans=num_plans.astype(jnp.int32), first_plan=first_plan, plans=plans)

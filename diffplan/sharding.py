@@ -1,0 +1,168 @@
+"""Data parallelism over all JAX devices through ``jax.sharding``.
+
+One 1-D mesh named ``"data"`` spans the devices. Batches are split along their leading axis
+(``P("data")``); parameters, optimizer state and PRNG keys are replicated (``P()``). XLA's SPMD
+partitioner then inserts the gradient all-reduce, so a sharded train step computes the same
+numbers as a single-device one (up to float summation order). With one device every helper is
+a no-op placement on that device.
+
+On a CPU-only machine, several host "devices" for testing are obtained with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (set before JAX initialises).
+
+Typical use::
+
+    mesh = data_mesh()
+    params = replicate(params, mesh)
+    batch = shard_batch(batch, mesh)                       # leading axis split over "data"
+    f = data_parallel_jit(fn, mesh, batched_argnums=(1,))  # fn(params, x) -> batched output
+    y = f(params, x)
+"""
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable, Optional, Sequence
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+__all__ = [
+    "DATA_AXIS",
+    "data_mesh",
+    "replicated_sharding",
+    "batch_sharding",
+    "batch_size_of",
+    "check_divisible",
+    "shard_batch",
+    "replicate",
+    "constrain_batch",
+    "constrain_replicated",
+    "data_parallel_jit",
+]
+
+DATA_AXIS = "data"
+
+
+def data_mesh(devices: Optional[Sequence[jax.Device]] = None) -> Mesh:
+    """A 1-D mesh with axis ``"data"`` over ``devices`` (default: all of ``jax.devices()``)."""
+    devs = list(jax.devices() if devices is None else devices)
+    if not devs:
+        raise ValueError("data_mesh needs at least one device")
+    return Mesh(np.asarray(devs, dtype=object), (DATA_AXIS,))
+
+
+def replicated_sharding(mesh: Mesh) -> NamedSharding:
+    """Every device holds the whole array."""
+    return NamedSharding(mesh, P())
+
+
+def batch_sharding(mesh: Mesh) -> NamedSharding:
+    """The leading axis is split evenly over the ``"data"`` axis; other axes are whole."""
+    return NamedSharding(mesh, P(DATA_AXIS))
+
+
+def batch_size_of(tree: Any) -> int:
+    """The common leading dimension of every array leaf of ``tree``.
+
+    Raises:
+      ValueError: if a leaf is a scalar, if leading dimensions differ, or there are no leaves.
+    """
+    leaves = jax.tree_util.tree_leaves_with_path(tree)
+    if not leaves:
+        raise ValueError("batch has no array leaves")
+    sizes = {}
+    for path, leaf in leaves:
+        shape = np.shape(leaf)
+        if len(shape) == 0:
+            raise ValueError(f"batch leaf {jax.tree_util.keystr(path) or '<root>'} is a scalar; "
+                             "every batch leaf needs a leading batch axis")
+        sizes[jax.tree_util.keystr(path) or "<root>"] = shape[0]
+    if len(set(sizes.values())) != 1:
+        raise ValueError(f"batch leaves have different leading (batch) sizes: {sizes}")
+    return next(iter(sizes.values()))
+
+
+def check_divisible(batch_size: int, mesh: Mesh) -> None:
+    """Raises ValueError unless ``batch_size`` splits evenly over the mesh's devices."""
+    n = mesh.size
+    if batch_size % n:
+        raise ValueError(
+            f"batch size {batch_size} is not divisible by the number of devices {n} on the "
+            f"'{DATA_AXIS}' mesh axis; use a multiple of {n}")
+
+
+def shard_batch(tree: Any, mesh: Mesh) -> Any:
+    """Places every leaf of ``tree`` with its leading axis split over ``"data"``.
+
+    Leaves must share the leading dimension, divisible by the number of devices.
+    """
+    check_divisible(batch_size_of(tree), mesh)
+    return jax.device_put(tree, batch_sharding(mesh))
+
+
+def replicate(tree: Any, mesh: Mesh) -> Any:
+    """Places a full copy of every leaf of ``tree`` on every device of ``mesh``."""
+    return jax.device_put(tree, replicated_sharding(mesh))
+
+
+def constrain_batch(tree: Any, mesh: Mesh) -> Any:
+    """Inside ``jit``: asks XLA to keep ``tree``'s leading axis split over ``"data"``."""
+    check_divisible(batch_size_of(tree), mesh)
+    return jax.lax.with_sharding_constraint(tree, batch_sharding(mesh))
+
+
+def constrain_replicated(tree: Any, mesh: Mesh) -> Any:
+    """Inside ``jit``: asks XLA to keep every leaf of ``tree`` replicated."""
+    return jax.lax.with_sharding_constraint(tree, replicated_sharding(mesh))
+
+
+def data_parallel_jit(fn: Callable, mesh: Mesh, *, batched_argnums: Sequence[int] = (0,),
+                      out_batched: Any = True, donate_argnums: Sequence[int] = ()) -> Callable:
+    """``jit(fn)`` with batched arguments split over ``"data"`` and the others replicated.
+
+    Args:
+      fn: a pure function of positional array pytrees (close over static values).
+      mesh: from ``data_mesh``.
+      batched_argnums: positions of arguments whose leaves all have the leading batch axis
+        (their batch size must be divisible by the number of devices).
+      out_batched: True if every output leaf has the leading batch axis (split over
+        ``"data"``), False if every output is replicated, or a pytree prefix of bools matching
+        the output structure.
+      donate_argnums: forwarded to ``jax.jit``.
+
+    Returns:
+      A callable with ``fn``'s signature. It places its arguments (``shard_batch`` /
+      ``replicate``, a no-op when they are already placed) and calls the jitted function, which
+      is available as ``.jitted_for(num_args)`` for callers that place inputs themselves.
+    """
+    batched = frozenset(int(i) for i in batched_argnums)
+    in_b, in_r = batch_sharding(mesh), replicated_sharding(mesh)
+
+    def out_spec(flag):
+        return in_b if flag else in_r
+
+    if isinstance(out_batched, bool):
+        out_shardings = out_spec(out_batched)
+    else:
+        out_shardings = jax.tree_util.tree_map(out_spec, out_batched)
+
+    cache = {}
+
+    def get_jitted(nargs: int):
+        if nargs not in cache:
+            bad = [i for i in batched if i >= nargs or i < 0]
+            if bad:
+                raise ValueError(f"batched_argnums {sorted(bad)} out of range for {nargs} args")
+            in_shardings = tuple(in_b if i in batched else in_r for i in range(nargs))
+            cache[nargs] = jax.jit(fn, in_shardings=in_shardings, out_shardings=out_shardings,
+                                   donate_argnums=tuple(donate_argnums))
+        return cache[nargs]
+
+    @functools.wraps(fn)
+    def wrapper(*args):
+        placed = tuple(shard_batch(a, mesh) if i in batched else replicate(a, mesh)
+                       for i, a in enumerate(args))
+        return get_jitted(len(args))(*placed)
+
+    wrapper.jitted_for = get_jitted
+    return wrapper

@@ -1,0 +1,104 @@
+"""Static configuration of the grid world (hashable: usable as a jit static argument)."""
+from __future__ import annotations
+
+import dataclasses
+
+from envs.gridworld import grammar
+
+SETTINGS = ("1o1g", "mo1g", "p_mo2g")
+
+
+@dataclasses.dataclass(frozen=True)
+class GridConfig:
+    """One grid-world setting.
+
+    Attributes:
+      setting: "1o1g" (one object, the goal, no obstacles), "mo1g" (several distinct objects, one
+        the goal), "p_mo2g" (partially observable: a visible reference object and a target that
+        is not visible at t=0, in the instructed compass direction from the reference).
+      size: the grid is size x size cells.
+      min_objects, max_objects: number of distinct objects per episode (uniform in the range).
+      max_obstacles: number of obstacles is uniform in 0..max_obstacles.
+      view_radius: Chebyshev radius of the field of view (a square around the agent, clipped at
+        the border, accumulated over time); None means the world is fully observable.
+      ref_target_radius: in p_mo2g the target lies within this Chebyshev distance of the
+        reference, so that standing on the reference reveals it (must be <= view_radius).
+      max_steps: episode length in moves.
+      paraphrase: draw the instruction uniformly from the setting's templates; False uses the
+        canonical template 0.
+      num_classes: number of object classes used (<= len(grammar.OBJECT_NAMES)).
+    """
+
+    setting: str = "p_mo2g"
+    size: int = 16
+    min_objects: int = 5
+    max_objects: int = 8
+    max_obstacles: int = 10
+    view_radius: int | None = 6
+    ref_target_radius: int = 6
+    max_steps: int = 100
+    paraphrase: bool = False
+    num_classes: int = len(grammar.OBJECT_NAMES)
+
+    def __post_init__(self):
+        errors = []
+        if self.setting not in SETTINGS:
+            errors.append(f"unknown setting {self.setting!r}; expected one of {SETTINGS}")
+        if self.size < 4:
+            errors.append(f"size must be >= 4, got {self.size}")
+        if not 1 <= self.num_classes <= len(grammar.OBJECT_NAMES):
+            errors.append(
+                f"num_classes must be in 1..{len(grammar.OBJECT_NAMES)}, got {self.num_classes}")
+        if self.min_objects < 1 or self.max_objects < self.min_objects:
+            errors.append(
+                f"need 1 <= min_objects <= max_objects, got {self.min_objects}, {self.max_objects}")
+        if self.max_objects > self.num_classes:
+            errors.append(
+                f"max_objects={self.max_objects} exceeds the {self.num_classes} distinct classes")
+        if self.max_obstacles < 0:
+            errors.append(f"max_obstacles must be >= 0, got {self.max_obstacles}")
+        if self.max_objects + self.max_obstacles + 1 > self.size * self.size:
+            errors.append(
+                f"{self.max_objects} objects + {self.max_obstacles} obstacles + the agent do not "
+                f"fit in {self.size * self.size} cells")
+        if self.view_radius is not None and self.view_radius < 0:
+            errors.append(f"view_radius must be >= 0 or None, got {self.view_radius}")
+        if self.max_steps < 1:
+            errors.append(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.setting == "p_mo2g":
+            if self.view_radius is None:
+                errors.append("p_mo2g needs a finite view_radius (it is partially observable)")
+            elif not 1 <= self.ref_target_radius <= self.view_radius:
+                errors.append(
+                    f"ref_target_radius must be in 1..view_radius={self.view_radius}, "
+                    f"got {self.ref_target_radius}")
+            elif 2 * self.view_radius + 1 >= self.size:
+                errors.append(
+                    f"view_radius={self.view_radius} sees the whole {self.size}x{self.size} grid "
+                    "from its centre: no target could start unseen")
+            if self.min_objects < 2:
+                errors.append("p_mo2g needs min_objects >= 2 (a reference and a target)")
+        if self.setting == "1o1g" and (self.min_objects, self.max_objects) != (1, 1):
+            errors.append("1o1g has exactly one object (min_objects = max_objects = 1)")
+        if errors:
+            raise ValueError("invalid GridConfig: " + "; ".join(errors))
+
+    @property
+    def has_reference(self) -> bool:
+        return self.setting == "p_mo2g"
+
+    @property
+    def num_templates(self) -> int:
+        return len(grammar.TEMPLATES[self.setting])
+
+
+def make_config(setting: str, **overrides) -> GridConfig:
+    """The paper's configuration of a setting (Sec. 4.1), with optional overrides."""
+    defaults = {
+        "1o1g": dict(min_objects=1, max_objects=1, max_obstacles=0, view_radius=None),
+        "mo1g": dict(min_objects=2, max_objects=8, max_obstacles=10, view_radius=None),
+        "p_mo2g": dict(min_objects=5, max_objects=8, max_obstacles=10, view_radius=6),
+    }
+    if setting not in defaults:
+        raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
+    return GridConfig(setting=setting, **{**defaults[setting], **overrides})

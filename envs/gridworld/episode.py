@@ -1,0 +1,207 @@
+"""Episode generation: a pure function of a PRNG key, vmap-able over keys.
+
+An :class:`Episode` holds everything fixed for an episode: the grid, the start, the goal, the
+instruction (as token ids) and the expert path (a shortest obstacle-free 4-connected path from the
+agent through the reference, if any, to the target). Every generated episode is solvable within
+``max_steps`` moves: layouts whose expert path would not exist are re-drawn.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from envs.gridworld import bfs, grammar
+from envs.gridworld.config import GridConfig
+
+EMPTY_CELL, OBSTACLE_CELL = 0, -1
+_MAX_LAYOUT_TRIES = 16
+
+
+@struct.dataclass
+class Episode:
+    """One episode's fixed content (leading batch axes allowed when vmapped).
+
+    grid: int8 (H, W): 0 empty, -1 obstacle, k >= 1 object class k (grammar.OBJECT_NAMES[k-1]).
+    agent, target, reference: int32 (2,) (row, col); reference is (-1, -1) without one.
+    target_class, reference_class: int32 () 1-based classes (reference_class 0 without one).
+    direction: int32 () compass sector 0..7 from reference to target (grammar.DIRECTIONS), -1 none.
+    template: int32 () index of the instruction template.
+    tokens: int32 (L,) the instruction's token ids (0 padded).
+    expert_positions: int32 (max_steps + 1, 2) the expert path, padded by repeating the target.
+    expert_length: int32 () number of moves of the expert path.
+    expert_path: bool (H, W) the cells of the expert path, ends included.
+    """
+
+    grid: jax.Array
+    agent: jax.Array
+    target: jax.Array
+    reference: jax.Array
+    target_class: jax.Array
+    reference_class: jax.Array
+    direction: jax.Array
+    template: jax.Array
+    tokens: jax.Array
+    expert_positions: jax.Array
+    expert_length: jax.Array
+    expert_path: jax.Array
+
+
+def chebyshev(a, b):
+    """Chebyshev distance between cells (..., 2) -> int32 (...)."""
+    return jnp.max(jnp.abs(a - b), axis=-1)
+
+
+def compass_sector(src, dst):
+    """Compass sector 0..7 (grammar.DIRECTIONS) of dst seen from src; north = row 0. int32 ()."""
+    d_row = (dst[0] - src[0]).astype(jnp.float32)
+    d_col = (dst[1] - src[1]).astype(jnp.float32)
+    angle = jnp.arctan2(-d_row, d_col)  # counter-clockwise from east, north up
+    return (jnp.round(angle / (jnp.pi / 4)).astype(jnp.int32) % 8).astype(jnp.int32)
+
+
+def _cell_coords(size):
+    rows, cols = jnp.meshgrid(jnp.arange(size), jnp.arange(size), indexing="ij")
+    return jnp.stack([rows, cols], axis=-1).astype(jnp.int32)  # (H, W, 2)
+
+
+def _choose_cell(key, allowed):
+    """A uniformly random cell among allowed (bool (H, W)) -> int32 (2,)."""
+    size = allowed.shape[1]
+    scores = jax.random.uniform(key, allowed.shape)
+    flat = jnp.argmax(jnp.where(allowed, scores, -1.0).ravel())
+    return jnp.stack([flat // size, flat % size]).astype(jnp.int32)
+
+
+def _random_subset(key, allowed, count, max_count):
+    """bool (H, W): `count` (traced, <= max_count static) random cells among allowed."""
+    scores = jnp.where(allowed, jax.random.uniform(key, allowed.shape), -1.0).ravel()
+    _, idx = jax.lax.top_k(scores, max_count)
+    take = (jnp.arange(max_count) < count) & (scores[idx] >= 0)
+    return jnp.zeros(scores.shape, jnp.int32).at[idx].add(take.astype(jnp.int32)).reshape(
+        allowed.shape) > 0
+
+
+def _place_goal_cells(key, config: GridConfig, agent):
+    """Target and reference cells (reference (-1,-1) when the setting has none)."""
+    coords = _cell_coords(config.size)
+    k_target, k_ref = jax.random.split(key)
+    d_agent = chebyshev(coords, agent)
+    if config.has_reference:
+        vr, rtr = config.view_radius, config.ref_target_radius
+        # Unseen at t=0, yet close enough to some cell the agent sees for a reference to exist.
+        target = _choose_cell(k_target, (d_agent > vr) & (d_agent <= vr + rtr))
+        ref_ok = (d_agent <= vr) & (chebyshev(coords, target) <= rtr) & (d_agent > 0)
+        reference = _choose_cell(k_ref, ref_ok)
+    else:
+        target = _choose_cell(k_target, d_agent > 0)
+        reference = jnp.array([-1, -1], jnp.int32)
+    return target, reference
+
+
+def _objects_grid(key, config: GridConfig, agent, target, reference):
+    """int8 (H, W) grid with the objects placed (no obstacles yet), and the goal classes."""
+    size = config.size
+    k_classes, k_count, k_cells = jax.random.split(key, 3)
+    classes = jax.random.permutation(k_classes, config.num_classes)[: config.max_objects] + 1
+    num_objects = jax.random.randint(k_count, (), config.min_objects, config.max_objects + 1)
+    grid = jnp.zeros((size, size), jnp.int32).at[target[0], target[1]].set(classes[0])
+    taken = jnp.zeros((size, size), bool).at[agent[0], agent[1]].set(True)
+    taken = taken.at[target[0], target[1]].set(True)
+    num_fixed = 1
+    if config.has_reference:
+        grid = grid.at[reference[0], reference[1]].set(classes[1])
+        taken = taken.at[reference[0], reference[1]].set(True)
+        num_fixed = 2
+    num_distractors = config.max_objects - num_fixed
+    if num_distractors > 0:
+        cells = _random_subset(k_cells, ~taken, num_objects - num_fixed, num_distractors)
+        # Distractor j (in raster order) gets classes[num_fixed + j].
+        order = jnp.cumsum(cells.ravel()).reshape(cells.shape) - 1
+        distractor_class = classes[num_fixed:][jnp.clip(order, 0, num_distractors - 1)]
+        grid = jnp.where(cells, distractor_class, grid)
+    reference_class = classes[1] if config.has_reference else jnp.int32(0)
+    return grid, classes[0], reference_class
+
+
+def _expert(config: GridConfig, passable, agent, target, reference):
+    """Expert positions (max_steps+1, 2), length (), and whether it exists within max_steps."""
+    to_target = bfs.cost_to_go(passable, target)
+    if config.has_reference:
+        to_ref = bfs.cost_to_go(passable, reference)
+        d1 = to_ref[agent[0], agent[1]]
+        d2 = to_target[reference[0], reference[1]]
+        leg1 = bfs.descend(to_ref, passable, agent, config.max_steps)
+        leg2 = bfs.descend(to_target, passable, reference, config.max_steps)
+        n1 = jnp.minimum(d1, config.max_steps).astype(jnp.int32)
+        # Positions: leg1[0..n1], then leg2[1..]; index i >= n1 maps to leg2[i - n1].
+        idx = jnp.arange(config.max_steps + 1)
+        positions = jnp.where((idx <= n1)[:, None], leg1,
+                              leg2[jnp.clip(idx - n1, 0, config.max_steps)])
+        length = d1 + d2
+    else:
+        positions = bfs.descend(to_target, passable, agent, config.max_steps)
+        length = to_target[agent[0], agent[1]]
+    ok = length <= config.max_steps
+    return positions, jnp.minimum(length, config.max_steps).astype(jnp.int32), ok
+
+
+def generate(key, config: GridConfig) -> Episode:
+    """Draws one solvable episode. Pure; vmap over keys for a batch. config is static."""
+    size = config.size
+    k_agent, k_goal, k_objects, k_obstacles, k_template = jax.random.split(key, 5)
+    agent = _choose_cell(k_agent, jnp.ones((size, size), bool))
+    target, reference = _place_goal_cells(k_goal, config, agent)
+    grid, target_class, reference_class = _objects_grid(k_objects, config, agent, target,
+                                                        reference)
+    free = (grid == 0).at[agent[0], agent[1]].set(False)
+
+    def draw_layout(attempt_key, attempt):
+        k_count, k_cells = jax.random.split(attempt_key)
+        count = jax.random.randint(k_count, (), 0, config.max_obstacles + 1)
+        # After the last failed attempt, fall back to no obstacles (always solvable).
+        count = jnp.where(attempt >= _MAX_LAYOUT_TRIES, 0, count)
+        if config.max_obstacles == 0:
+            return jnp.zeros((size, size), bool)
+        return _random_subset(k_cells, free, count, config.max_obstacles)
+
+    def layout_result(obstacles):
+        return _expert(config, ~obstacles, agent, target, reference)
+
+    def cond(carry):
+        return ~carry[4]
+
+    def body(carry):
+        attempt, _, _, _, _ = carry
+        obstacles = draw_layout(jax.random.fold_in(k_obstacles, attempt), attempt)
+        positions, length, ok = layout_result(obstacles)
+        return attempt + 1, obstacles, positions, length, ok
+
+    init = body((jnp.int32(0), jnp.zeros((size, size), bool),
+                 jnp.zeros((config.max_steps + 1, 2), jnp.int32), jnp.int32(0), jnp.array(False)))
+    _, obstacles, positions, length, _ = jax.lax.while_loop(cond, body, init)
+
+    grid = jnp.where(obstacles, OBSTACLE_CELL, grid).astype(jnp.int8)
+    if config.has_reference:
+        direction = compass_sector(reference, target)
+    else:
+        direction = jnp.int32(-1)
+    templates = jnp.asarray(grammar.compile_templates(config.setting))
+    template = (jax.random.randint(k_template, (), 0, config.num_templates)
+                if config.paraphrase else jnp.int32(0))
+    tokens = grammar.fill_template(templates[template], reference_class, target_class,
+                                   jnp.maximum(direction, 0))
+    valid = jnp.arange(config.max_steps + 1) <= length
+    return Episode(
+        grid=grid, agent=agent, target=target, reference=reference,
+        target_class=jnp.int32(target_class), reference_class=jnp.int32(reference_class),
+        direction=direction, template=template.astype(jnp.int32), tokens=tokens,
+        expert_positions=positions, expert_length=length,
+        expert_path=bfs.positions_to_mask(positions, size, valid),
+    )
+
+
+def generate_batch(key, config: GridConfig, n: int) -> Episode:
+    """n episodes from one key (episode i uses fold_in(key, i): any prefix is stable)."""
+    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(n))
+    return jax.vmap(generate, in_axes=(0, None))(keys, config)

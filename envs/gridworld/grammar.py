@@ -1,0 +1,161 @@
+"""The instruction grammar of the grid world, in one place.
+
+Everything about language lives here: the object classes, the compass directions, the instruction
+templates of each setting (several phrasings per meaning, used for the "complex instruction"
+study) and the word-level vocabulary built from them.
+
+Templates are written with three slots: ``{ref}`` (the reference object), ``{target}`` and
+``{dir}`` (the compass direction from the reference to the target). Each template is compiled
+once into an int32 array of token ids in which the slots are negative markers, so that the
+JAX episode generator can fill them with ``jnp.where`` (see :func:`fill_template`): instructions
+are produced inside ``jit`` as token ids and turned into text only when exported.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+OBJECT_NAMES: tuple[str, ...] = (
+    "apple", "carrot", "banana", "lettuce", "orange", "tomato", "grapes", "broccoli",
+    "strawberry", "cucumber", "pear", "cherry", "onion", "potato", "pepper",
+)
+"""Object classes; class k (1-based, as stored in the grid) is ``OBJECT_NAMES[k - 1]``."""
+
+DIRECTIONS: tuple[str, ...] = (
+    "east", "northeast", "north", "northwest", "west", "southwest", "south", "southeast",
+)
+"""Compass sectors counter-clockwise from east; sector s covers angles (s*45 - 22.5, s*45 + 22.5]
+degrees, with north = row 0 (up)."""
+
+# Special tokens. Ids 1-3 double as cell tokens of the observation's cell-id channel.
+PAD, UNSEEN, EMPTY, OBSTACLE = "<pad>", "<unseen>", "<empty>", "<obstacle>"
+SPECIAL_TOKENS: tuple[str, ...] = (PAD, UNSEEN, EMPTY, OBSTACLE)
+PAD_ID, UNSEEN_ID, EMPTY_ID, OBSTACLE_ID = 0, 1, 2, 3
+
+TEMPLATES: dict[str, tuple[str, ...]] = {
+    "1o1g": (
+        "Go to the {target}.",
+        "Walk to the {target}.",
+        "Find the {target}.",
+        "Navigate to the {target}.",
+        "Head towards the {target}.",
+        "Your goal is the {target}.",
+    ),
+    "mo1g": (
+        "Go to the {target}.",
+        "Walk to the {target}.",
+        "Find the {target}.",
+        "Navigate to the {target}.",
+        "Head towards the {target}.",
+        "Your goal is the {target}.",
+    ),
+    "p_mo2g": (
+        "First, go to the {ref}. Then, go {dir} to find the {target}.",
+        "First, walk to the {ref}, then head {dir} towards the {target}.",
+        "Go to the {ref} first. The {target} is {dir} of it.",
+        "Find the {ref}. From there, the {target} lies to the {dir}.",
+        "Head towards the {ref}, then go {dir} and find the {target}.",
+        "Navigate to the {ref}. Then, search {dir} for the {target}.",
+    ),
+}
+"""Template 0 of each setting is the canonical phrasing; the others are paraphrases."""
+
+SLOT_REF, SLOT_TARGET, SLOT_DIR = -1, -2, -3
+_SLOTS = {"{ref}": SLOT_REF, "{target}": SLOT_TARGET, "{dir}": SLOT_DIR}
+
+_WORD_RE = re.compile(r"\{[a-z]+\}|[a-z]+|[.,]")
+
+
+def split_words(text: str) -> list[str]:
+    """Lower-cases and splits text into words and punctuation tokens ('.' and ',')."""
+    return _WORD_RE.findall(text.lower())
+
+
+def _build_vocab() -> tuple[str, ...]:
+    words: set[str] = set(OBJECT_NAMES) | set(DIRECTIONS)
+    for templates in TEMPLATES.values():
+        for template in templates:
+            words.update(w for w in split_words(template) if w not in _SLOTS)
+    # Object names first (right after the specials) so that their ids are stable and compact.
+    rest = sorted(words - set(OBJECT_NAMES))
+    return SPECIAL_TOKENS + OBJECT_NAMES + tuple(rest)
+
+
+VOCAB: tuple[str, ...] = _build_vocab()
+WORD_TO_ID: dict[str, int] = {w: i for i, w in enumerate(VOCAB)}
+OBJECT_TOKEN_OFFSET = len(SPECIAL_TOKENS)
+"""Token id of object class k (1-based) is ``k - 1 + OBJECT_TOKEN_OFFSET``."""
+DIRECTION_TOKEN_IDS = np.array([WORD_TO_ID[d] for d in DIRECTIONS], np.int32)
+MAX_TOKENS = 24
+"""Fixed instruction length (tokens, padded with 0) of every template, with room to spare."""
+
+
+def class_to_token(object_class):
+    """Token id of an object class (1-based class ids; works on ints, numpy and jax arrays)."""
+    return object_class - 1 + OBJECT_TOKEN_OFFSET
+
+
+def encode(text: str, max_tokens: int = MAX_TOKENS) -> np.ndarray:
+    """Word-level tokenizer: text -> int32 (max_tokens,) ids padded with 0.
+
+    Raises ValueError naming every word outside the vocabulary, or if the text is too long.
+    """
+    words = split_words(text)
+    unknown = sorted({w for w in words if w not in WORD_TO_ID or w in SPECIAL_TOKENS})
+    if unknown:
+        raise ValueError(f"instruction has words outside the vocabulary: {unknown}")
+    if len(words) > max_tokens:
+        raise ValueError(f"instruction has {len(words)} tokens, more than max_tokens={max_tokens}")
+    ids = np.zeros(max_tokens, np.int32)
+    ids[: len(words)] = [WORD_TO_ID[w] for w in words]
+    return ids
+
+
+def decode(ids) -> str:
+    """int token ids (padding 0 dropped) -> text with punctuation re-attached."""
+    words = [VOCAB[int(i)] for i in np.asarray(ids).ravel() if int(i) != PAD_ID]
+    text = " ".join(words)
+    text = re.sub(r" ([.,])", r"\1", text)
+    # Capitalise the first letter of each sentence.
+    return re.sub(r"(^|[.] )([a-z])", lambda m: m.group(1) + m.group(2).upper(), text)
+
+
+def compile_templates(setting: str) -> np.ndarray:
+    """The setting's templates as int32 (num_templates, MAX_TOKENS) token ids with negative slot
+    markers (SLOT_REF, SLOT_TARGET, SLOT_DIR) and 0 padding."""
+    if setting not in TEMPLATES:
+        raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(TEMPLATES)}")
+    rows = []
+    for template in TEMPLATES[setting]:
+        words = split_words(template)
+        row = np.zeros(MAX_TOKENS, np.int32)
+        row[: len(words)] = [_SLOTS[w] if w in _SLOTS else WORD_TO_ID[w] for w in words]
+        rows.append(row)
+    return np.stack(rows)
+
+
+def fill_template(template_ids, ref_class, target_class, direction):
+    """Fills a compiled template (int32 (L,)) with token ids; jnp-compatible (works in jit).
+
+    Args: ref_class, target_class: 1-based object classes; direction: sector index 0..7.
+    Returns int32 (L,) token ids.
+    """
+    import jax.numpy as jnp
+
+    template_ids = jnp.asarray(template_ids)
+    direction_tokens = jnp.asarray(DIRECTION_TOKEN_IDS)
+    out = jnp.where(template_ids == SLOT_REF, class_to_token(ref_class), template_ids)
+    out = jnp.where(template_ids == SLOT_TARGET, class_to_token(target_class), out)
+    out = jnp.where(template_ids == SLOT_DIR, direction_tokens[direction], out)
+    return out.astype(jnp.int32)
+
+
+def render(setting: str, template: int, ref_class: int, target_class: int, direction: int) -> str:
+    """Plain-Python rendering of an instruction (the reference for tests and export)."""
+    text = TEMPLATES[setting][template]
+    return text.format(
+        ref=OBJECT_NAMES[ref_class - 1] if ref_class > 0 else "",
+        target=OBJECT_NAMES[target_class - 1],
+        dir=DIRECTIONS[direction] if direction >= 0 else "",
+    )

@@ -1,0 +1,424 @@
+"""Shared machinery of the CompILE grid-world experiments (Tables 1, 4 and 6 of the paper).
+
+``experiments.compile_1o1g``, ``compile_mo1g`` and ``compile_p_mo2g`` are thin wrappers around
+:func:`main`: load (or train) the setting's denoiser, evaluate it on fresh seeded episodes in
+every planning mode, print a table, write JSON (contract 2 of DESIGN.md), and optionally the
+executed trajectories and figures.
+
+Seeds: evaluation episode i of ``--seed S`` is ``episode.generate(fold_in(PRNGKey(S), i))``, the
+convention of ``envs.gridworld.export`` (so ``export --seed S`` writes the same episodes).
+Training draws its examples from ``fold_in(step_key, TRAIN_STREAM)`` keys of its own seed (see
+:func:`make_batch_fn`): a different key stream, so training never sees the evaluation episodes
+(tests/test_compile_experiments.py checks a sample for overlap).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CHECKPOINT_ROOT = os.path.join(REPO_ROOT, "checkpoints")
+TRAIN_STREAM = 0x7EA1
+DEFAULT_EVAL_SEED = 1000
+
+
+def enable_compilation_cache():
+    """JAX's persistent compilation cache (re-runs skip most compile time)."""
+    cache = os.environ.get("DIFFPLAN_JAX_CACHE",
+                           os.path.join(os.path.expanduser("~"), ".cache", "diffplan-jax"))
+    os.makedirs(cache, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentSpec:
+    """Everything a setting's experiment fixes: world, model, training and planning defaults."""
+
+    setting: str
+    grid_repr: str = "embed"
+    goal_channel: bool = True
+    train_steps: int = 6000
+    batch_size: int = 64
+    lr: float = 1e-3
+    warmup_steps: int = 200
+    num_steps: int = 10
+    warm_start_step: int = 8
+    eval_batch: int = 250
+    modes: tuple[str, ...] = ("one_shot", "k_shot", "on_the_fly", "warm_start")
+    main_mode: str = "on_the_fly"
+
+    @property
+    def name(self) -> str:
+        return f"compile_{self.setting}"
+
+    def grid_config(self):
+        from envs.gridworld.config import make_config
+        return make_config(self.setting)
+
+    def task(self):
+        from envs.gridworld.task import GridTask
+        return GridTask(self.grid_config())
+
+    def model_config(self):
+        from diffplan.denoiser import DenoiserConfig
+        from envs.gridworld import grammar
+        from envs.gridworld.task import NUM_COND_CHANNELS, NUM_GEN_CHANNELS
+        return DenoiserConfig(
+            vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS,
+            num_cond_channels=NUM_COND_CHANNELS, num_gen_channels=NUM_GEN_CHANNELS,
+            grid_repr=self.grid_repr, embed_dim=32, widths=(32, 64, 128), num_res_blocks=1,
+            attn_levels=(2,), cross_attn_levels=(1, 2), text_dim=64, text_layers=2,
+            text_heads=4, groups=8, head_dim=32)
+
+    def train_config(self, seed: int = 0, steps: int | None = None):
+        from diffplan.train import TrainConfig
+        steps = self.train_steps if steps is None else steps
+        return TrainConfig(seed=seed, steps=steps, batch_size=self.batch_size, lr=self.lr,
+                           warmup_steps=min(self.warmup_steps, max(steps // 10, 0)),
+                           num_train_timesteps=100, checkpoint_every=500,
+                           log_every=max(1, min(100, steps // 10)))
+
+    def planner_config(self, mode: str, **overrides):
+        from diffplan.planner import PlannerConfig
+        return PlannerConfig(mode=mode, num_steps=self.num_steps,
+                             warm_start_step=self.warm_start_step, **overrides)
+
+    def default_checkpoint(self) -> str:
+        return os.path.join(CHECKPOINT_ROOT, self.setting)
+
+
+SPECS = {
+    "1o1g": ExperimentSpec("1o1g", modes=("one_shot", "on_the_fly", "warm_start")),
+    "mo1g": ExperimentSpec("mo1g", modes=("one_shot", "on_the_fly", "warm_start")),
+    "p_mo2g": ExperimentSpec("p_mo2g"),
+}
+
+
+# ----------------------------------------------------------------------------------- data
+
+def make_batch_fn(grid_config, goal_channel: bool = True, goal_loss_seen_only: bool = False):
+    """batch_fn(key, batch_size) -> diffplan.train.Batch of grid-world training examples.
+
+    goal_channel=False trains without the goal estimate (the paper's "- g" ablation: the goal
+    channel is dropped from the loss). goal_loss_seen_only masks the goal loss to seen cells.
+    """
+    from diffplan.train import Batch
+    from envs.gridworld.task import training_example
+
+    def batch_fn(key, batch_size):
+        keys = jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
+        x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None))(keys, grid_config)
+        mask = jnp.ones(x0.shape[:-1] + (2,), jnp.float32)
+        goal_mask = seen.astype(jnp.float32) if goal_loss_seen_only else mask[..., 1]
+        if not goal_channel:
+            goal_mask = jnp.zeros_like(goal_mask)
+        mask = mask.at[..., 1].set(goal_mask)
+        return Batch(x0=x0, tokens=tokens, loss_mask=mask)
+
+    return batch_fn
+
+
+def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
+    """Evaluation episodes: episode i = generate(fold_in(PRNGKey(seed), i)). (Episode, n)."""
+    from envs.gridworld.episode import generate
+    gen = jax.jit(jax.vmap(generate, in_axes=(0, None)), static_argnums=1)
+    root = jax.random.PRNGKey(seed)
+    parts = []
+    for start in range(0, n, chunk):
+        idx = jnp.arange(start, min(n, start + chunk))
+        keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(idx)
+        parts.append(jax.device_get(gen(keys, grid_config)))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
+
+
+# ------------------------------------------------------------------------------ training
+
+def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: int | None = None,
+                  progress: bool = True):
+    """Trains the setting's denoiser into out_dir (resuming if it holds a checkpoint).
+    Returns (ema params, model config, seconds)."""
+    from diffplan.denoiser import Denoiser
+    from diffplan.train import train
+
+    model_config = spec.model_config()
+    model = Denoiser(model_config)
+    batch_fn = make_batch_fn(spec.grid_config(), goal_channel=spec.goal_channel)
+    start = time.time()
+    result = train(model, model_config, spec.train_config(seed, steps), batch_fn, out_dir,
+                   progress=progress,
+                   extra_metadata={"setting": spec.setting, "goal_channel": spec.goal_channel,
+                                   "command_seed": seed})
+    return result.ema_params, model_config, time.time() - start
+
+
+def load_model(spec: ExperimentSpec, checkpoint_dir: str):
+    """(params, model config, metadata) of a checkpoint; clear errors when missing/mismatched."""
+    from diffplan.checkpoint import latest_step, load_params_for_eval
+    from diffplan.denoiser import DenoiserConfig
+
+    if latest_step(checkpoint_dir) is None:
+        raise FileNotFoundError(checkpoint_dir)
+    params, metadata = load_params_for_eval(checkpoint_dir)
+    model_config = DenoiserConfig.from_dict(metadata["model_config"])
+    return params, model_config, metadata
+
+
+# ---------------------------------------------------------------------------- evaluation
+
+def make_rollout_fn(task, model_config, planner_config):
+    """jitted (params, keys (B,), episodes) -> Rollout for one planning mode."""
+    from diffplan.denoiser import Denoiser
+    from diffplan.planner import rollout
+    from diffplan.schedule import cosine_schedule
+
+    model = Denoiser(model_config)
+    schedule = cosine_schedule(100)
+
+    def apply_fn(params, x_t, t, tokens):
+        return model.apply({"params": params}, x_t, t, tokens)
+
+    @jax.jit
+    def run(params, keys, episodes):
+        return rollout(task, apply_fn, params, schedule, keys, episodes, planner_config)
+
+    return run
+
+
+def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, batch_size,
+                  progress=True, record_plans=False):
+    """Runs one planning mode on the n episodes in chunks; returns (Rollout as numpy, seconds)."""
+    from tqdm import tqdm
+
+    planner_config = spec.planner_config(mode, record_plans=record_plans)
+    run = make_rollout_fn(task, model_config, planner_config)
+    root = jax.random.fold_in(jax.random.PRNGKey(seed), 0x9A11)
+    outs = []
+    start = time.time()
+    bar = tqdm(total=n, desc=f"{spec.setting} {mode}", unit="ep", disable=not progress,
+               file=sys.stderr, leave=False)
+    for lo in range(0, n, batch_size):
+        hi = min(n, lo + batch_size)
+        chunk = jax.tree.map(lambda x: x[lo:hi], episodes)
+        keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(lo, hi))
+        outs.append(jax.device_get(run(params, keys, chunk)))
+        bar.update(hi - lo)
+    bar.close()
+    seconds = time.time() - start
+    merged = jax.tree.map(lambda *xs: np.concatenate(xs), *outs)
+    return merged, seconds
+
+
+def metrics_row(method, rollout, episodes, seconds, has_reference):
+    from diffplan.metrics import plan_metrics, trajectory_metrics
+
+    row = {"method": method}
+    row.update(trajectory_metrics(rollout.positions, rollout.steps, episodes.target,
+                                  episodes.expert_path,
+                                  episodes.reference if has_reference else None))
+    row.update(plan_metrics(rollout.first_plan[..., 0], episodes.expert_path))
+    row["collisions_per_episode"] = float(np.mean(rollout.final_state.collisions))
+    row["denoiser_calls_per_episode"] = float(np.mean(rollout.denoiser_calls))
+    row["plans_per_episode"] = float(np.mean(rollout.num_plans))
+    row["seconds"] = float(seconds)
+    return row
+
+
+METHOD_NAMES = {"one_shot": "one-shot", "k_shot": "two-shot", "on_the_fly": "on-the-fly",
+                "warm_start": "warm-start on-the-fly"}
+
+TABLE_COLUMNS = (("method", "{:<22}"), ("SR", "{:>7.2f}"), ("SR_ordered", "{:>7.2f}"),
+                 ("GD", "{:>6.3f}"), ("path_precision", "{:>7.2f}"), ("path_recall", "{:>7.2f}"),
+                 ("path_f1", "{:>7.2f}"), ("plan_f1", "{:>7.2f}"),
+                 ("denoiser_calls_per_episode", "{:>8.1f}"), ("seconds", "{:>8.1f}"))
+HEADERS = {"method": "method", "SR": "SR", "SR_ordered": "SR_ord", "GD": "GD",
+           "path_precision": "Prec", "path_recall": "Rec", "path_f1": "F1",
+           "plan_f1": "planF1", "denoiser_calls_per_episode": "calls", "seconds": "sec"}
+
+
+def format_table(rows) -> str:
+    """A plain-text table of result rows (missing values shown as '-')."""
+    widths = {k: len(fmt.format(0 if k != "method" else "")) for k, fmt in TABLE_COLUMNS}
+    head = " ".join(HEADERS[k].rjust(widths[k]) if k != "method" else HEADERS[k].ljust(widths[k])
+                    for k, _ in TABLE_COLUMNS)
+    lines = [head, "-" * len(head)]
+    for row in rows:
+        cells = []
+        for k, fmt in TABLE_COLUMNS:
+            cells.append(fmt.format(row[k]) if k in row else "-".rjust(widths[k]))
+        lines.append(" ".join(cells))
+    return "\n".join(lines)
+
+
+def contract_arrays(episodes, grid_config) -> dict:
+    """The episodes in the export format of contract 1 (numpy)."""
+    from envs.gridworld import env, grammar
+
+    reset = jax.jit(jax.vmap(lambda e: env.reset(e, grid_config)))
+    seen0 = np.asarray(reset(episodes).seen)
+    return {
+        "grid": np.asarray(episodes.grid, np.int8),
+        "agent": np.asarray(episodes.agent, np.int32),
+        "target": np.asarray(episodes.target, np.int32),
+        "reference": np.asarray(episodes.reference, np.int32),
+        "expert_path": np.asarray(episodes.expert_path, bool),
+        "expert_length": np.asarray(episodes.expert_length, np.int32),
+        "visible0": seen0.astype(bool),
+        "instruction": np.array([grammar.decode(t) for t in np.asarray(episodes.tokens)]),
+        "object_names": np.array(grammar.OBJECT_NAMES),
+    }
+
+
+def write_trajectories(path, rollout, episodes, grid_config):
+    arrays = contract_arrays(episodes, grid_config)
+    final = rollout.positions[np.arange(len(rollout.steps)), rollout.steps]
+    arrays.update(positions=np.asarray(rollout.positions, np.int32),
+                  steps=np.asarray(rollout.steps, np.int32),
+                  success=np.all(final == np.asarray(episodes.target), axis=-1))
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    np.savez_compressed(path, **arrays)
+
+
+# ------------------------------------------------------------------------------------ CLI
+
+def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"python -m experiments.{spec.name}",
+        description=(f"CompILE grid world, setting {spec.setting}: evaluate the diffusion planner "
+                     "on fresh seeded episodes in each planning mode, measured on what the agent "
+                     "executed (with collisions), and print/write the results table."))
+    p.add_argument("--episodes", type=int, default=1000,
+                   help="number of evaluation episodes (default 1000)")
+    p.add_argument("--seed", type=int, default=DEFAULT_EVAL_SEED,
+                   help="evaluation seed: episode i is generated from fold_in(PRNGKey(seed), i) "
+                        f"(default {DEFAULT_EVAL_SEED}; training uses a disjoint key stream)")
+    p.add_argument("--json", metavar="PATH", help="write the results (contract 2) as JSON")
+    p.add_argument("--trajectories", metavar="PATH.npz",
+                   help="write the executed trajectories of the main row and the episodes")
+    p.add_argument("--checkpoint", metavar="DIR",
+                   help=f"evaluate this checkpoint (default: the shipped "
+                        f"checkpoints/{spec.setting}, or the --train output)")
+    p.add_argument("--train", action="store_true",
+                   help="train from scratch (resumes if --train-dir holds a checkpoint), then "
+                        "evaluate the result")
+    p.add_argument("--train-dir", metavar="DIR", default=None,
+                   help=f"training output directory (default runs/{spec.name})")
+    p.add_argument("--train-steps", type=int, default=spec.train_steps,
+                   help=f"optimisation steps of --train (default {spec.train_steps})")
+    p.add_argument("--train-seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--modes", default=",".join(spec.modes),
+                   help=f"comma-separated planning modes to evaluate (default "
+                        f"{','.join(spec.modes)})")
+    p.add_argument("--num-steps", type=int, default=spec.num_steps,
+                   help=f"denoising steps per full plan (default {spec.num_steps})")
+    p.add_argument("--warm-start-step", type=int, default=spec.warm_start_step,
+                   help="steps skipped by warm-start re-plans: each costs num_steps minus this "
+                        f"(default {spec.warm_start_step})")
+    p.add_argument("--batch-size", type=int, default=spec.eval_batch,
+                   help=f"episodes per jitted evaluation call (default {spec.eval_batch})")
+    p.add_argument("--figures", metavar="DIR",
+                   help="write PNGs of a few episodes: map, executed path, and the predicted "
+                        "paths and goal estimates at several re-plans")
+    p.add_argument("--num-figures", type=int, default=4, help="episodes drawn with --figures")
+    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    return p
+
+
+def check_args(parser, args, spec):
+    from diffplan.planner import MODES
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.batch_size < 1:
+        parser.error(f"--batch-size must be >= 1, got {args.batch_size}")
+    if args.train_steps < 2:
+        parser.error(f"--train-steps must be >= 2, got {args.train_steps}")
+    if args.num_steps < 1:
+        parser.error(f"--num-steps must be >= 1, got {args.num_steps}")
+    if not 0 <= args.warm_start_step < args.num_steps:
+        parser.error(f"--warm-start-step must be in 0..{args.num_steps - 1}")
+    modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes:
+        parser.error(f"unknown --modes {bad}; choose from {MODES}")
+    return modes
+
+
+def main(setting: str, argv: Sequence[str] | None = None) -> dict:
+    spec = SPECS[setting]
+    parser = build_parser(spec)
+    args = parser.parse_args(argv)
+    modes = check_args(parser, args, spec)
+    spec = dataclasses.replace(spec, num_steps=args.num_steps,
+                               warm_start_step=args.warm_start_step)
+    enable_compilation_cache()
+    progress = not args.no_progress
+
+    train_seconds = None
+    if args.train:
+        train_dir = args.train_dir or os.path.join(REPO_ROOT, "runs", spec.name)
+        params, model_config, train_seconds = train_setting(
+            spec, train_dir, seed=args.train_seed, steps=args.train_steps, progress=progress)
+        checkpoint = train_dir
+        metadata = {"trained_now": True}
+    else:
+        checkpoint = args.checkpoint or spec.default_checkpoint()
+        try:
+            params, model_config, metadata = load_model(spec, checkpoint)
+        except FileNotFoundError:
+            print(f"No checkpoint in {checkpoint}: train one with `python -m experiments."
+                  f"{spec.name} --train` (or pass --checkpoint DIR).", file=sys.stderr)
+            raise SystemExit(2)
+
+    grid_config = spec.grid_config()
+    task = spec.task()
+    episodes = eval_episodes(grid_config, args.episodes, args.seed)
+    rows, rollouts = [], {}
+    for mode in modes:
+        rollout_np, seconds = evaluate_mode(spec, task, params, model_config, episodes,
+                                            args.episodes, args.seed, mode, args.batch_size,
+                                            progress)
+        rows.append(metrics_row(METHOD_NAMES[mode], rollout_np, episodes, seconds,
+                                grid_config.has_reference))
+        rollouts[mode] = rollout_np
+
+    main_mode = spec.main_mode if spec.main_mode in modes else modes[0]
+    result = {
+        "experiment": spec.name,
+        "episodes": args.episodes,
+        "seed": args.seed,
+        "setting": setting,
+        "checkpoint": os.path.relpath(checkpoint, REPO_ROOT) if checkpoint else None,
+        "num_steps": spec.num_steps,
+        "warm_start_step": spec.warm_start_step,
+        "trajectories_method": METHOD_NAMES[main_mode],
+        "train_seconds": train_seconds,
+        "machine": f"{os.cpu_count()} CPU cores, jax {jax.__version__} on "
+                   f"{jax.devices()[0].platform}",
+        "rows": rows,
+    }
+    print(f"\n{spec.name}: {args.episodes} episodes, seed {args.seed}, "
+          f"{spec.num_steps} denoising steps per plan, checkpoint {result['checkpoint']}")
+    print(format_table(rows))
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+        print(f"wrote {args.json}")
+    if args.trajectories:
+        write_trajectories(args.trajectories, rollouts[main_mode], episodes, grid_config)
+        print(f"wrote {args.trajectories} ({METHOD_NAMES[main_mode]} trajectories)")
+    if args.figures:
+        from experiments.compile_figures import write_figures
+        paths = write_figures(args.figures, spec, task, params, model_config, episodes,
+                              args.seed, min(args.num_figures, args.episodes))
+        print(f"wrote {len(paths)} figures to {args.figures}")
+    return result

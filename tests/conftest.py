@@ -1,0 +1,141 @@
+"""Shared test setup: the repo on sys.path, JAX's persistent compilation cache, and session-scoped
+fixtures that compile each jitted grid-world function once for the whole test session.
+
+The compilation cache lives in $DIFFPLAN_JAX_CACHE or ~/.cache/diffplan-jax: compiled programs
+are reused across test runs (and by the CLIs, which use the same directory).
+"""
+from __future__ import annotations
+
+import functools
+import os
+import pathlib
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+_CACHE_DIR = os.path.expanduser(os.environ.get("DIFFPLAN_JAX_CACHE", "~/.cache/diffplan-jax"))
+try:
+    os.makedirs(_CACHE_DIR, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", _CACHE_DIR)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+except OSError:  # an unwritable home: run without the persistent cache
+    pass
+
+GRID_BATCH = 64
+"""Episodes per generated test batch (one compilation per setting serves every seed)."""
+
+
+@pytest.fixture(scope="session")
+def grid_configs():
+    """setting -> the paper's GridConfig of that setting."""
+    from envs.gridworld.config import SETTINGS, make_config
+
+    return {s: make_config(s) for s in SETTINGS}
+
+
+@pytest.fixture(scope="session")
+def gen_batch(grid_configs):
+    """(setting, seed) -> (Episode of numpy arrays with a leading (GRID_BATCH,) axis, visible0 bool
+    (GRID_BATCH, H, W)): episodes 0..GRID_BATCH-1 of seed, i.e. ``episode.generate_batch(
+    PRNGKey(seed), config, GRID_BATCH)`` (test_generate_batch_prefix_stable checks it), with
+    visible0 from env.reset. Uses export.generate_chunk, so one compilation per setting serves
+    every seed and the export tests; results memoised per (setting, seed)."""
+    from envs.gridworld import export
+
+    @functools.lru_cache(maxsize=64)
+    def gen(setting, seed):
+        eps, visible0 = export.generate_chunk(jax.random.PRNGKey(seed), np.int32(0),
+                                              grid_configs[setting], GRID_BATCH)
+        return jax.tree.map(np.asarray, eps), np.asarray(visible0)
+
+    return gen
+
+
+ROLL_STEPS = 110
+"""Steps of a test rollout: longer than max_steps = 100, so every episode ends inside it."""
+
+
+def mixed_actions(episodes, seed: int, num_steps: int = ROLL_STEPS) -> np.ndarray:
+    """int32 (B, num_steps) actions: even episodes follow their expert path (then act randomly),
+    odd episodes act uniformly at random (many collisions at the border and obstacles)."""
+    rng = np.random.default_rng(seed)
+    b = episodes.agent.shape[0]
+    actions = rng.integers(0, 4, size=(b, num_steps)).astype(np.int32)
+    deltas = np.diff(episodes.expert_positions, axis=1)  # (B, max_steps, 2)
+    moves = np.array([[-1, 0], [0, 1], [1, 0], [0, -1]])
+    for i in range(0, b, 2):
+        n = int(episodes.expert_length[i])
+        for t in range(n):
+            actions[i, t] = int(np.flatnonzero((moves == deltas[i, t]).all(-1))[0])
+    return actions
+
+
+@pytest.fixture(scope="session")
+def rollout(grid_configs, gen_batch):
+    """(setting, seed) -> dict of numpy arrays of a jitted reset + ROLL_STEPS x (step + observe)
+    rollout (under vmap) of the episodes gen_batch(setting, seed) with mixed_actions(seed):
+      "episodes", "visible0", "actions" int32 (B, T),
+      "states0": State at t=0 (leading B), "obs0": its Observation,
+      "states": State after each step (leading B, T), "obs": Observation after each step.
+    Compiled once per setting; memoised for a few seeds."""
+    from envs.gridworld import env
+
+    jitted = {}
+
+    def compiled(setting):
+        if setting not in jitted:
+            config = grid_configs[setting]
+            v_reset = jax.vmap(lambda e: env.reset(e, config))
+            v_step = jax.vmap(lambda s, a: env.step(s, a, config))
+            v_observe = jax.vmap(lambda s: env.observe(s, config))
+
+            @jax.jit
+            def run(episodes, actions):
+                s0 = v_reset(episodes)
+
+                def body(state, action):
+                    nxt = v_step(state, action)
+                    return nxt, (nxt, v_observe(nxt))
+
+                _, (states, obs) = jax.lax.scan(body, s0, actions.T)
+                # scan stacks time first: move it after the batch axis.
+                swap = functools.partial(jax.numpy.swapaxes, axis1=0, axis2=1)
+                return s0, v_observe(s0), jax.tree.map(swap, states), jax.tree.map(swap, obs)
+
+            jitted[setting] = run
+        return jitted[setting]
+
+    @functools.lru_cache(maxsize=4)
+    def run(setting, seed):
+        episodes, visible0 = gen_batch(setting, seed)
+        actions = mixed_actions(episodes, seed)
+        s0, o0, states, obs = compiled(setting)(episodes, actions)
+        out = dict(states0=s0, obs0=o0, states=states, obs=obs)
+        out = jax.tree.map(np.asarray, out)
+        out.update(episodes=episodes, visible0=visible0, actions=actions)
+        return out
+
+    return run
+
+
+@pytest.fixture(scope="session")
+def observe_fn(grid_configs):
+    """setting -> jitted vmapped env.observe (State with leading batch axis -> Observation)."""
+    from envs.gridworld import env
+
+    cache = {}
+
+    def get(setting):
+        if setting not in cache:
+            config = grid_configs[setting]
+            cache[setting] = jax.jit(jax.vmap(lambda s: env.observe(s, config)))
+        return cache[setting]
+
+    return get

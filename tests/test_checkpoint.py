@@ -1,0 +1,207 @@
+"""Tests of diffplan.checkpoint: round trips, retention, eval export, mismatch errors."""
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffplan import checkpoint as ckpt
+from diffplan.train import Batch, TrainConfig, TrainState, checkpoint_metadata, init_train_state
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+H = W = 8
+C, G, L = 2, 2, 4
+
+
+@dataclasses.dataclass(frozen=True)
+class TinyConfig:
+    features: int = 8
+    vocab: int = 16
+
+    def to_dict(self):
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d):
+        return cls(**d)
+
+
+class TinyDenoiser(nn.Module):
+    """Stand-in with the Denoiser call signature: (B,H,W,C+G), (B,), (B,L) -> (B,H,W,G)."""
+
+    config: TinyConfig
+
+    @nn.compact
+    def __call__(self, x_t, t, tokens):
+        h = nn.Conv(self.config.features, (3, 3))(x_t)
+        h = h + nn.Embed(self.config.vocab, self.config.features)(tokens).mean(1)[:, None, None]
+        return nn.Conv(G, (3, 3))(nn.silu(h))
+
+
+CFG = TrainConfig(steps=10, batch_size=4, warmup_steps=1)
+SHAPES = Batch(jax.ShapeDtypeStruct((1, H, W, C + G), jnp.float32),
+               jax.ShapeDtypeStruct((1, L), jnp.int32),
+               jax.ShapeDtypeStruct((1, H, W, G), jnp.float32))
+
+
+def leaves(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+def assert_trees_equal(a, b):
+    la, lb = leaves(a), leaves(b)
+    assert len(la) == len(lb)
+    for x, y in zip(la, lb):
+        assert x.shape == y.shape and x.dtype == y.dtype
+        np.testing.assert_array_equal(x, y)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return TinyDenoiser(TinyConfig())
+
+
+@pytest.fixture(scope="module")
+def state(model):
+    """A TrainState with distinct, non-trivial values in every part."""
+    s0 = init_train_state(model, CFG, SHAPES)
+
+    @jax.jit
+    def perturb(s):
+        bump = lambda x: x + jnp.asarray(0.25, x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x + 3
+        return TrainState(params=s.params, ema_params=jax.tree_util.tree_map(lambda p: p * 0.5, s.params),
+                          opt_state=jax.tree_util.tree_map(bump, s.opt_state), step=s.step + 5)
+
+    return perturb(s0)
+
+
+@pytest.fixture(scope="module")
+def metadata(model):
+    return checkpoint_metadata(model, TinyConfig(), CFG, SHAPES, {"task": "toy"})
+
+
+@pytest.fixture(scope="module")
+def train_dir(tmp_path_factory, state, metadata):
+    d = str(tmp_path_factory.mktemp("ckpt"))
+    ckpt.save_checkpoint(d, 5, state, metadata)
+    return d
+
+
+def test_train_checkpoint_round_trip(train_dir, state, model):
+    assert ckpt.latest_step(train_dir) == 5 and ckpt.all_steps(train_dir) == [5]
+    target = jax.eval_shape(lambda: init_train_state(model, CFG, SHAPES))
+    restored, meta = ckpt.load_checkpoint(train_dir, target=target)
+    assert isinstance(restored, TrainState)
+    assert_trees_equal(restored.params, state.params)
+    assert_trees_equal(restored.ema_params, state.ema_params)
+    assert_trees_equal(restored.opt_state, state.opt_state)
+    assert jax.tree_util.tree_structure(restored.opt_state) == jax.tree_util.tree_structure(state.opt_state)
+    assert int(restored.step) == 5
+    assert meta["kind"] == "train" and meta["step"] == 5 and meta["extra"] == {"task": "toy"}
+    assert meta["model_class"].endswith(":TinyDenoiser")
+    # Without a target: plain dicts.
+    raw, _ = ckpt.load_checkpoint(train_dir, 5)
+    assert_trees_equal(raw["ema_params"], state.ema_params)
+    assert_trees_equal(raw["train_state"]["opt_state"], jax.tree_util.tree_leaves(state.opt_state))
+    assert int(raw["train_state"]["step"]) == 5
+
+
+def test_keeps_latest_two_and_refuses_to_overwrite(tmp_path, state, metadata):
+    d = str(tmp_path / "keep")
+    assert ckpt.latest_step(d) is None
+    for s in (1, 2, 3):
+        ckpt.save_checkpoint(d, s, state, metadata)
+    assert ckpt.all_steps(d) == [2, 3]
+    assert not any(n.startswith("1") for n in os.listdir(d))
+    with pytest.raises(ValueError, match="already exists"):
+        ckpt.save_checkpoint(d, 3, state, metadata)
+    with pytest.raises(FileNotFoundError, match="step 7"):
+        ckpt.load_checkpoint(d, 7)
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        ckpt.load_params_for_eval(str(tmp_path / "empty"))
+
+
+def test_mismatched_config_or_shapes_raise_value_error(train_dir, state, model):
+    params, meta = ckpt.load_params_for_eval(train_dir, TinyConfig(), model=model)
+    assert_trees_equal(params, state.ema_params)
+    with pytest.raises(ValueError, match=r"model config mismatch.*features: stored 8, requested 16"):
+        ckpt.load_params_for_eval(train_dir, TinyConfig(features=16), model=model)
+    with pytest.raises(ValueError, match=r"vocab: stored 16, requested 32"):
+        ckpt.load_params_for_eval(train_dir, {"features": 8, "vocab": 32}, model=model)
+    # Same config, different architecture: the mismatching parameter is named with shapes.
+    wide = TinyDenoiser(TinyConfig(features=12))
+    with pytest.raises(ValueError, match=r"parameter shape mismatch.*Conv_0.*kernel.*"
+                                         r"checkpoint \(3, 3, 4, 8\).*expects \(3, 3, 4, 12\)"):
+        ckpt.load_params_for_eval(train_dir, model=wide)
+    # Resuming into a differently shaped state is refused the same way.
+    target = jax.eval_shape(lambda: init_train_state(wide, CFG, SHAPES))
+    with pytest.raises(ValueError, match=r"does not match the target state.*Conv_0"):
+        ckpt.load_checkpoint(train_dir, target=target)
+
+
+def test_export_eval_checkpoint_is_small_and_loads(train_dir, state, model, tmp_path):
+    out = str(tmp_path / "eval")
+    path = ckpt.export_eval_checkpoint(train_dir, out)
+    assert sorted(n for n in os.listdir(path) if not n.startswith("_") and "." not in n) == \
+        ["ema_params", "metadata"]
+
+    def size(p):
+        return sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(p) for f in fs)
+
+    assert size(path) < size(os.path.join(train_dir, "5"))
+    params, meta = ckpt.load_params_for_eval(out, TinyConfig(), model=model)
+    assert_trees_equal(params, state.ema_params)
+    assert all(x.dtype == np.float32 for x in leaves(params))
+    assert meta["kind"] == "eval" and meta["step"] == 5
+    assert meta["train_config"] == CFG.to_dict() and meta["exported_from"]["step"] == 5
+    target = jax.eval_shape(lambda: init_train_state(model, CFG, SHAPES))
+    with pytest.raises(ValueError, match="evaluation checkpoint"):
+        ckpt.load_checkpoint(out, target=target)
+    with pytest.raises(ValueError, match="overwrite=True"):
+        ckpt.export_eval_checkpoint(train_dir, out)
+    ckpt.export_eval_checkpoint(train_dir, out, overwrite=True)
+    assert ckpt.all_steps(out) == [5]
+
+    # A fresh process loads it (no model needed to read the params).
+    code = ("import json, numpy as np, jax; from diffplan.checkpoint import load_params_for_eval;"
+            f"p, m = load_params_for_eval({out!r});"
+            "print(json.dumps([m['step'], float(sum(np.abs(np.asarray(x)).sum() "
+            "for x in jax.tree_util.tree_leaves(p)))]))")
+    env = dict(os.environ, PYTHONPATH=REPO, JAX_PLATFORMS="cpu")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=REPO, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    step, total = json.loads(res.stdout.strip().splitlines()[-1])
+    assert step == 5
+    np.testing.assert_allclose(total, sum(np.abs(x).sum() for x in leaves(state.ema_params)),
+                               rtol=1e-6)
+
+
+def test_real_denoiser_checkpoint(tmp_path):
+    den = pytest.importorskip("diffplan.denoiser")
+    mc = den.DenoiserConfig(vocab_size=16, max_tokens=L, num_cond_channels=C, num_gen_channels=G,
+                            embed_dim=8, widths=(8, 16), num_res_blocks=1, attn_levels=(),
+                            cross_attn_levels=(1,), text_dim=8, text_layers=1, text_heads=2,
+                            groups=4, head_dim=8, mid_block=False)
+    model = den.Denoiser(mc)
+    meta = checkpoint_metadata(model, mc, CFG, SHAPES)
+    assert meta["model_class"] == "diffplan.denoiser:Denoiser"
+    assert meta["model_config_class"] == "diffplan.denoiser:DenoiserConfig"
+    abstract = ckpt.abstract_params(model, meta["input_shapes"])  # no compilation
+    params = jax.tree_util.tree_map(lambda a: np.full(a.shape, 0.5, a.dtype), abstract)
+    d = str(tmp_path / "real")
+    ckpt.save_checkpoint(d, 100, params, meta)  # an eval checkpoint (params only)
+    # The model class is rebuilt from the metadata, from a config object or a dict.
+    loaded, m = ckpt.load_params_for_eval(d, mc)
+    assert_trees_equal(loaded, params) and m["kind"] == "eval"
+    ckpt.load_params_for_eval(d, json.loads(json.dumps(mc.to_dict())))
+    with pytest.raises(ValueError, match=r"widths: stored \[8, 16\], requested \[8, 32\]"):
+        ckpt.load_params_for_eval(d, dataclasses.replace(mc, widths=(8, 32)))
+    with pytest.raises(ValueError, match="parameter shape mismatch"):
+        ckpt.load_params_for_eval(d, model=den.Denoiser(dataclasses.replace(mc, embed_dim=16)))

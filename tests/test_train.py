@@ -1,0 +1,300 @@
+"""Tests of diffplan.train: the loss, the optimiser schedule, the loop, resume and NaN handling.
+
+A tiny stand-in denoiser (a conv net with the Denoiser call signature) on a toy task keeps the
+tests fast; one test also runs the real ``diffplan.denoiser.Denoiser``.
+"""
+import dataclasses
+import json
+import os
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffplan import checkpoint as ckpt
+from diffplan.schedule import cosine_schedule
+from diffplan.train import (Batch, ConfigMismatchError, NonFiniteLossError, TrainConfig,
+                            diffusion_loss, init_train_state, lr_schedule, make_train_step,
+                            step_key, train)
+
+H = W = 8
+C, G, L = 2, 2, 4
+
+
+@dataclasses.dataclass(frozen=True)
+class TinyConfig:
+    features: int = 8
+    vocab: int = 16
+    gen: int = G
+
+    def to_dict(self):
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d):
+        return cls(**d)
+
+
+class TinyDenoiser(nn.Module):
+    """(B,H,W,C+G), (B,), (B,L) -> (B,H,W,G): two 3x3 convs plus token and time biases."""
+
+    config: TinyConfig
+
+    @nn.compact
+    def __call__(self, x_t, t, tokens):
+        c = self.config
+        emb = nn.Embed(c.vocab, c.features)(tokens).mean(axis=1)
+        tf = jnp.stack([jnp.sin(t / 10.0), jnp.cos(t / 10.0), t / 100.0], -1).astype(jnp.float32)
+        h = nn.Conv(c.features, (3, 3))(x_t) + (emb + nn.Dense(c.features)(tf))[:, None, None]
+        h = nn.Conv(c.features, (3, 3))(nn.silu(h))
+        return nn.Conv(c.gen, (3, 3))(nn.silu(h))
+
+
+def toy_batch_fn(key, batch_size):
+    """Path = free cells, goal = a corner chosen by the first token: learnable from conditions."""
+    k1, k2 = jax.random.split(key)
+    obst = (jax.random.uniform(k1, (batch_size, H, W)) < 0.3).astype(jnp.float32)
+    tok = jax.random.randint(k2, (batch_size, L), 1, 16).astype(jnp.int32)
+    cell = jnp.where(obst > 0, 3.0, 2.0)
+    path = jnp.where(obst > 0, -1.0, 1.0)
+    corner = (tok[:, 0] % 2) * (H - 1)
+    goal = jnp.where((jnp.arange(H)[None, :, None] == corner[:, None, None])
+                     & (jnp.arange(W)[None, None, :] == 0), 1.0, -1.0)
+    x0 = jnp.stack([cell, obst, path, goal], -1)
+    return Batch(x0, tok, jnp.ones((batch_size, H, W, G), jnp.float32))
+
+
+make_batch = jax.jit(toy_batch_fn, static_argnums=1)  # for batches drawn outside the loop
+
+
+def small_cfg(**kw):
+    base = dict(seed=3, steps=12, batch_size=4, lr=3e-3, warmup_steps=2, weight_decay=1e-2,
+                grad_clip=1.0, ema_decay=0.99, num_train_timesteps=100, num_gen_channels=G,
+                checkpoint_every=4, log_every=1)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def read_metrics(out_dir):
+    with open(os.path.join(out_dir, "metrics.jsonl")) as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def leaves_close(a, b, atol=1e-6):
+    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    assert len(la) == len(lb)
+    return all(np.allclose(np.asarray(x), np.asarray(y), atol=atol, rtol=0) for x, y in zip(la, lb))
+
+
+# ------------------------------------------------------------------------------- config
+
+def test_train_config_roundtrip_and_validation():
+    cfg = small_cfg()
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert TrainConfig().lr == 2e-4 and TrainConfig().num_train_timesteps == 100
+    with pytest.raises(ValueError, match="warmup_steps"):
+        small_cfg(warmup_steps=12)
+    with pytest.raises(ValueError, match="batch_size"):
+        small_cfg(batch_size=0)
+    with pytest.raises(ValueError, match="unknown TrainConfig fields"):
+        TrainConfig.from_dict({"lr": 1e-3, "bogus": 1})
+    with pytest.raises(ValueError, match="ema_decay"):
+        small_cfg(ema_decay=1.0)
+
+
+def test_lr_schedule_warms_up_then_decays():
+    cfg = TrainConfig(steps=100, warmup_steps=10, lr=1e-3)
+    lr = np.array([float(lr_schedule(cfg)(i)) for i in range(101)])
+    assert lr[0] == 0.0
+    assert np.all(np.diff(lr[:11]) > 0), "linear warm-up"
+    np.testing.assert_allclose(lr[5], 5e-4, rtol=1e-5)
+    np.testing.assert_allclose(lr[10], 1e-3, rtol=1e-6)
+    assert np.all(np.diff(lr[10:]) < 0), "cosine decay"
+    np.testing.assert_allclose(lr[55], 5e-4, rtol=1e-4)  # half-way through the decay
+    assert lr[100] < 1e-9
+
+
+# ------------------------------------------------------------------------------- loss
+
+def test_loss_noises_only_generated_channels_and_respects_mask():
+    batch = make_batch(jax.random.PRNGKey(0), 4)
+    ab = cosine_schedule(100).alphas_cumprod
+    key = jax.random.PRNGKey(1)
+    goal_masked = batch.loss_mask.at[..., 1].set(0.0)
+
+    def oracle(variables, x_t, t, tokens):
+        # Recovers eps exactly iff x_t follows the forward process on the generated channels;
+        # adds the change of the condition channels (zero iff they are clean).
+        a = ab[t][:, None, None, None]
+        eps = (x_t[..., C:] - jnp.sqrt(a) * batch.x0[..., C:]) / jnp.sqrt(1 - a)
+        return eps + jnp.sum(x_t[..., :C] - batch.x0[..., :C], -1, keepdims=True)
+
+    def zero(variables, x_t, t, tokens):
+        return jnp.zeros(x_t.shape[:-1] + (G,))
+
+    def junk_goal(variables, x_t, t, tokens):  # garbage where the mask is 0
+        return zero(variables, x_t, t, tokens).at[..., 1].set(1e3)
+
+    @jax.jit
+    def losses(b):
+        exact, aux = diffusion_loss({}, oracle, b, key, ab, G)
+        full, _ = diffusion_loss({}, zero, b, key, ab, G)
+        masked, _ = diffusion_loss({}, junk_goal, b._replace(loss_mask=goal_masked), key, ab, G)
+        eps = jax.random.normal(jax.random.split(key)[1], b.x0.shape[:-1] + (G,))
+        return exact, aux["t"], full, masked, jnp.mean(eps[..., 0] ** 2)
+
+    exact, t, full, masked, path_only = losses(batch)
+    assert float(exact) < 1e-8
+    assert t.shape == (4,) and int(t.min()) >= 0 and int(t.max()) < 100
+    assert 0.7 < float(full) < 1.3  # E[eps^2] = 1
+    # Masking the goal channel: what is predicted there is ignored and the loss is normalised
+    # by the mask sum (the path channel's mean squared noise).
+    np.testing.assert_allclose(float(masked), float(path_only), rtol=1e-5)
+    with pytest.raises(ValueError, match="loss_mask"):
+        diffusion_loss({}, zero, batch._replace(loss_mask=goal_masked[..., :1]), key, ab, G)
+
+
+# One configuration shared by the loop tests: the jitted loop step is compiled once (jit
+# caches are keyed by model, config, batch_fn and mesh) and reused by the resumed runs.
+LOOP_CFG = small_cfg(steps=60, batch_size=8, warmup_steps=5, checkpoint_every=20, log_every=1)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A 60-step run of the tiny model on the toy task (shared by several tests)."""
+    out = str(tmp_path_factory.mktemp("trained"))
+    result = train(TinyDenoiser(TinyConfig()), TinyConfig(), LOOP_CFG, toy_batch_fn, out,
+                   progress=False, extra_metadata={"task": "toy"})
+    return out, LOOP_CFG, result
+
+
+def test_training_lowers_the_loss(trained):
+    out, cfg, result = trained
+    recs = read_metrics(out)
+    assert [r["step"] for r in recs] == list(range(1, 61))
+    for r in recs:
+        assert set(r) >= {"step", "loss", "lr", "grad_norm", "steps_per_sec", "wall_time"}
+        assert np.isfinite(r["loss"]) and r["steps_per_sec"] > 0
+    first = np.mean([r["loss"] for r in recs[:10]])
+    last = np.mean([r["loss"] for r in recs[-10:]])
+    print(f"toy loss: first 10 steps {first:.4f} -> last 10 steps {last:.4f}")
+    assert last < 0.8 * first, (first, last)
+    assert result.final_loss == recs[-1]["loss"]
+    assert int(result.state.step) == 60
+    assert ckpt.all_steps(out) == [40, 60]  # latest 2 kept
+    # The EMA moved away from the initial params but differs from the raw params.
+    init = init_train_state(TinyDenoiser(TinyConfig()), cfg, make_batch(jax.random.PRNGKey(0), 1))
+    assert not leaves_close(result.state.ema_params, init.params, atol=1e-4)
+    assert not leaves_close(result.state.ema_params, result.state.params, atol=1e-7)
+    meta = ckpt.read_metadata(out)
+    assert meta["train_config"] == cfg.to_dict() and meta["extra"] == {"task": "toy"}
+    assert meta["model_config"] == TinyConfig().to_dict()
+    assert meta["input_shapes"] == {"x": [1, H, W, C + G], "tokens": [1, L]}
+    assert meta["kind"] == "train" and meta["step"] == 60
+
+
+def test_finished_run_is_not_retrained_and_config_mismatch_raises(trained):
+    out, cfg, result = trained
+    kw = dict(progress=False, extra_metadata={"task": "toy"})
+    again = train(TinyDenoiser(TinyConfig()), TinyConfig(), cfg, toy_batch_fn, out, **kw)
+    assert int(again.state.step) == 60 and leaves_close(again.state.params, result.state.params, 0)
+    with pytest.raises(ConfigMismatchError, match=r"model_config\.features: stored 8, requested 16"):
+        train(TinyDenoiser(TinyConfig(features=16)), TinyConfig(features=16), cfg, toy_batch_fn,
+              out, **kw)
+    with pytest.raises(ValueError, match=r"train_config\.lr: stored 0\.003, requested 0\.001"):
+        train(TinyDenoiser(TinyConfig()), TinyConfig(), dataclasses.replace(cfg, lr=1e-3),
+              toy_batch_fn, out, **kw)
+    with pytest.raises(ValueError, match=r"extra\.task"):
+        train(TinyDenoiser(TinyConfig()), TinyConfig(), cfg, toy_batch_fn, out, progress=False,
+              extra_metadata={"task": "other"})
+    # Logging-only fields may change.
+    train(TinyDenoiser(TinyConfig()), TinyConfig(), dataclasses.replace(cfg, log_every=7),
+          toy_batch_fn, out, **kw)
+    assert ckpt.all_steps(out) == [40, 60]
+
+
+class _Crash(Exception):
+    pass
+
+
+def test_resume_after_crash_matches_uninterrupted_run(trained, tmp_path):
+    full_dir, cfg, full = trained  # 60 steps in one go; checkpoints every 20, log every step
+    crash_dir = str(tmp_path / "crash")
+
+    def crash_at_27(step, record):
+        if step == 27:
+            raise _Crash()
+
+    with pytest.raises(_Crash):
+        train(TinyDenoiser(TinyConfig()), TinyConfig(), cfg, toy_batch_fn, crash_dir,
+              progress=False, extra_metadata={"task": "toy"}, callback=crash_at_27)
+    assert ckpt.all_steps(crash_dir) == [20]
+    assert [r["step"] for r in read_metrics(crash_dir)] == list(range(1, 28))
+
+    # "Fresh process": new model / config objects rebuilt from JSON, a fresh call.
+    cfg2 = TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    mc2 = TinyConfig.from_dict(json.loads(json.dumps(TinyConfig().to_dict())))
+    resumed = train(TinyDenoiser(mc2), mc2, cfg2, toy_batch_fn, crash_dir, progress=False,
+                    extra_metadata={"task": "toy"})
+
+    assert int(resumed.state.step) == 60
+    assert leaves_close(full.state.params, resumed.state.params, 1e-6)
+    assert leaves_close(full.state.ema_params, resumed.state.ema_params, 1e-6)
+    assert leaves_close(full.state.opt_state, resumed.state.opt_state, 1e-6)
+    # Same data and noise order: the per-step losses agree, including the replayed steps
+    # 21-27, and the resumed log holds each step once.
+    a, b = read_metrics(full_dir), read_metrics(crash_dir)
+    assert [r["step"] for r in b] == list(range(1, 61))
+    np.testing.assert_allclose([r["loss"] for r in a], [r["loss"] for r in b], rtol=1e-6)
+    assert ckpt.all_steps(crash_dir) == [40, 60]
+
+
+def test_step_keys_depend_only_on_seed_and_step():
+    k = np.asarray(jax.random.key_data(step_key(3, 5)))
+    assert np.array_equal(k, np.asarray(jax.random.key_data(step_key(3, 5))))
+    assert not np.array_equal(k, np.asarray(jax.random.key_data(step_key(3, 6))))
+    assert not np.array_equal(k, np.asarray(jax.random.key_data(step_key(4, 5))))
+
+
+def test_nan_loss_raises_and_keeps_last_checkpoint(tmp_path):
+    cfg = small_cfg(steps=16, log_every=4, checkpoint_every=4)
+    bad_step = 10  # 0-based index: the 11th step; checkpoint 12 must not be written
+    bad_key = jax.random.key_data(jax.random.split(step_key(cfg.seed, bad_step))[0])
+
+    def nan_batch_fn(key, batch_size):
+        b = toy_batch_fn(key, batch_size)
+        hit = jnp.all(jax.random.key_data(key) == bad_key)
+        return b._replace(x0=jnp.where(hit, jnp.nan, b.x0))
+
+    out = str(tmp_path / "nan")
+    with pytest.raises(NonFiniteLossError, match="non-finite loss") as info:
+        train(TinyDenoiser(TinyConfig()), TinyConfig(), cfg, nan_batch_fn, out, progress=False)
+    assert info.value.step == bad_step + 1
+    assert info.value.last_checkpoint_step == 8
+    assert "step 8" in str(info.value)
+    assert ckpt.all_steps(out) == [4, 8]
+    params, meta = ckpt.load_params_for_eval(out, TinyConfig(), model=TinyDenoiser(TinyConfig()))
+    assert meta["step"] == 8
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(params))
+    assert all(np.isfinite(r["loss"]) for r in read_metrics(out))
+
+
+def test_public_train_step_is_pure_and_learns():
+    cfg = small_cfg(steps=30, batch_size=8, lr=1e-2)
+    model = TinyDenoiser(TinyConfig())
+    batch = make_batch(jax.random.PRNGKey(0), 8)
+    state0 = init_train_state(model, cfg, batch)
+    step = make_train_step(model, cfg)
+    key = jax.random.PRNGKey(7)
+    s1, m1 = step(state0, batch, key)
+    s1b, m1b = step(state0, batch, key)
+    assert float(m1["loss"]) == float(m1b["loss"]) and int(s1.step) == 1
+    assert leaves_close(s1.params, s1b.params, 0)
+    assert float(m1["lr"]) == 0.0  # first step of the warm-up
+    s = s1
+    for i in range(8):
+        s, m = step(s, batch, key)  # same batch and noise: the loss must go down
+    assert float(m["loss"]) < float(m1["loss"])
+    assert np.isfinite(float(m["grad_norm"]))

@@ -1,0 +1,140 @@
+"""Tests for diffplan.unet and diffplan.text_encoder (tiny configs, CPU, fast)."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffplan.text_encoder import TextEncoder
+from diffplan.unet import MultiHeadAttention, UNet, timestep_embedding
+
+TINY = dict(out_channels=2, widths=(8, 16), num_res_blocks=1, attn_levels=(1,),
+            cross_attn_levels=(0, 1), groups=4, head_dim=8)
+
+
+def perturb(variables, scale=0.2, seed=1):
+    """Add noise to every parameter (zero-initialised layers become non-trivial)."""
+    leaves, treedef = jax.tree_util.tree_flatten(variables)
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(leaves))
+    leaves = [p + scale * jax.random.normal(k, p.shape, p.dtype) for p, k in zip(leaves, keys)]
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+@pytest.fixture(scope="session")
+def tiny_unet():
+    model = UNet(**TINY)
+    x = jnp.zeros((2, 8, 12, 3))
+    t = jnp.zeros((2,), jnp.int32)
+    ctx = jnp.zeros((2, 5, 16))
+    variables = model.init(jax.random.PRNGKey(0), x, t, ctx, jnp.ones((2, 5), bool))
+    return model, variables, jax.jit(model.apply)
+
+
+def _inputs(b=2, h=8, w=12, c=3, length=5, seed=0):
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    x = jax.random.normal(k1, (b, h, w, c))
+    t = jnp.arange(b, dtype=jnp.int32) * 7
+    ctx = jax.random.normal(k2, (b, length, 16))
+    mask = jnp.ones((b, length), bool)
+    return x, t, ctx, mask
+
+
+def test_timestep_embedding_shape_and_values():
+    e = timestep_embedding(jnp.array([0, 5]), 8)
+    assert e.shape == (2, 8)
+    np.testing.assert_allclose(e[0], np.r_[np.ones(4), np.zeros(4)], atol=1e-6)
+    assert not np.allclose(e[0], e[1])
+    with pytest.raises(ValueError, match="even"):
+        timestep_embedding(jnp.array([0]), 7)
+
+
+def test_unet_shape_and_zero_init(tiny_unet):
+    model, variables, apply = tiny_unet
+    x, t, ctx, mask = _inputs()
+    y = apply(variables, x, t, ctx, mask)
+    assert y.shape == (2, 8, 12, 2) and y.dtype == jnp.float32
+    assert np.all(np.asarray(y) == 0.0)  # zero-initialised output conv
+    y2 = apply(perturb(variables), x, t, ctx, mask)
+    assert np.abs(np.asarray(y2)).max() > 1e-3
+    assert np.all(np.isfinite(np.asarray(y2)))
+
+
+def test_unet_depends_on_t_and_context(tiny_unet):
+    model, variables, apply = tiny_unet
+    v = perturb(variables)
+    x, t, ctx, mask = _inputs()
+    y = apply(v, x, t, ctx, mask)
+    assert not np.allclose(y, apply(v, x, t + 10, ctx, mask), atol=1e-4)
+    assert not np.allclose(y, apply(v, x, t, ctx + 1.0, mask), atol=1e-4)
+
+
+def test_unet_vmap_matches_loop(tiny_unet):
+    model, variables, _ = tiny_unet
+    v = perturb(variables)
+    x, t, ctx, mask = _inputs(b=2)
+    xs = jnp.stack([x, x[::-1]])
+    ts = jnp.stack([t, t[::-1]])
+    ctxs = jnp.stack([ctx, ctx[::-1]])
+    masks = jnp.stack([mask, mask])
+    f = jax.jit(jax.vmap(lambda a, b, c, d: model.apply(v, a, b, c, d)))
+    ys = f(xs, ts, ctxs, masks)
+    assert ys.shape == (2, 2, 8, 12, 2)
+    np.testing.assert_allclose(ys[1], model.apply(v, x[::-1], t[::-1], ctx[::-1], mask),
+                               atol=1e-5)
+
+
+@pytest.mark.parametrize("hw", [(7, 8), (8, 5)])
+def test_unet_bad_hw_raises(tiny_unet, hw):
+    model, variables, _ = tiny_unet
+    x = jnp.zeros((1, *hw, 3))
+    with pytest.raises(ValueError, match="divisible by 2"):
+        model.apply(variables, x, jnp.zeros((1,), jnp.int32), jnp.zeros((1, 5, 16)))
+
+
+@pytest.mark.parametrize("override, match", [
+    (dict(groups=3), "groups"),
+    (dict(attn_levels=(2,)), "attn_levels"),
+    (dict(cross_attn_levels=(0, 0)), "duplicate"),
+    (dict(head_dim=5), "head_dim"),
+    (dict(widths=()), "widths"),
+    (dict(num_res_blocks=0), "num_res_blocks"),
+])
+def test_unet_bad_config_raises(override, match):
+    with pytest.raises(ValueError, match=match):
+        UNet(**{**TINY, **override}).validate()
+
+
+def test_attention_padding_mask():
+    att = MultiHeadAttention(num_heads=2)
+    x = jax.random.normal(jax.random.PRNGKey(0), (1, 4, 8))
+    ctx = jax.random.normal(jax.random.PRNGKey(1), (1, 6, 8))
+    v = att.init(jax.random.PRNGKey(2), x, ctx)
+    mask = jnp.array([[True, True, True, False, False, False]])
+    y = att.apply(v, x, ctx, mask)
+    # padded keys carry arbitrary values: the output must not change
+    ctx2 = ctx.at[:, 3:].set(100.0)
+    np.testing.assert_allclose(y, att.apply(v, x, ctx2, mask), atol=1e-6)
+    # truncating the padding gives the same output
+    np.testing.assert_allclose(y, att.apply(v, x, ctx[:, :3], mask[:, :3]), atol=1e-5)
+    # a fully padded context contributes exactly nothing
+    y0 = att.apply(v, x, ctx, jnp.zeros_like(mask))
+    assert np.all(np.asarray(y0) == 0.0)
+    # real keys do matter
+    assert not np.allclose(y, att.apply(v, x, ctx.at[:, 0].set(5.0), mask), atol=1e-4)
+
+
+def test_text_encoder_shapes_padding_and_limits():
+    enc = TextEncoder(vocab_size=20, max_tokens=10, dim=16, num_layers=2, num_heads=2)
+    tok = jnp.array([[5, 6, 7, 0, 0, 0], [9, 0, 0, 0, 0, 0]], jnp.int32)
+    v = enc.init(jax.random.PRNGKey(0), tok)
+    assert "token_embed" in v["params"] and "pos_embed" in v["params"]
+    assert v["params"]["pos_embed"].shape == (10, 16)
+    feats, mask = enc.apply(v, tok)
+    assert feats.shape == (2, 6, 16) and mask.shape == (2, 6)
+    np.testing.assert_array_equal(mask, tok != 0)
+    feats_short, _ = enc.apply(v, tok[:, :3])
+    np.testing.assert_allclose(feats[:, :3][mask[:, :3]], feats_short[mask[:, :3]], atol=1e-5)
+    with pytest.raises(ValueError, match="max_tokens"):
+        enc.apply(v, jnp.ones((1, 11), jnp.int32))
+    with pytest.raises(ValueError, match="num_heads"):
+        TextEncoder(vocab_size=20, max_tokens=10, dim=15, num_heads=2).init(
+            jax.random.PRNGKey(0), tok)
