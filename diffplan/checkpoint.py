@@ -215,13 +215,17 @@ def save_checkpoint(directory: str, step: int, state: Any, metadata: Mapping[str
     if step < 0:
         raise ValueError(f"step must be >= 0, got {step}")
     meta = dict(_json_normalise(dict(metadata)))
+    # Host copies: the arrays are small and replicated, and numpy arrays avoid orbax's
+    # replica-parallel slicing of multi-device arrays, which breaks with jax 0.6.2
+    # (orbax 0.12.8 uses ``jax.sharding.set_mesh`` as a context manager).
+    state = jax.device_get(state)
     if isinstance(state, TrainState):
         items = {
             "ema_params": ocp.args.StandardSave(state.ema_params),
             "train_state": ocp.args.StandardSave({
                 "params": state.params,
                 "opt_state": _flatten_opt_state(state.opt_state),
-                "step": jnp.asarray(state.step, jnp.int32),
+                "step": np.asarray(state.step, np.int32),
             }),
         }
         meta["kind"] = "train"

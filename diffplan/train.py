@@ -59,7 +59,7 @@ __all__ = [
     "train",
 ]
 
-_SYNC_EVERY = 16  # host checks the non-finite flag (and bounds queued steps) this often
+_SYNC_EVERY = 16  # the host checks for non-finite losses (and bounds queued steps) this often
 
 
 class Batch(NamedTuple):
@@ -305,9 +305,10 @@ def step_key(seed: int, step) -> jax.Array:
 
 
 def _compute_cfg(config: TrainConfig) -> TrainConfig:
-    """``config`` with the fields that do not change a training step normalised, so that the
-    jit caches below are shared by runs that differ only in logging / checkpointing."""
-    return dataclasses.replace(config, checkpoint_every=1, log_every=1, val_every=0,
+    """``config`` with the fields that do not enter the optimisation step normalised, so the
+    compiled step is shared by runs that differ only in seed, logging or checkpointing (the
+    seed enters through the keys, which are arguments)."""
+    return dataclasses.replace(config, seed=0, checkpoint_every=1, log_every=1, val_every=0,
                                val_batches=1)
 
 
@@ -391,53 +392,42 @@ def make_train_step(model, config: TrainConfig, *, mesh=None, alphas_cumprod=Non
 
     The batch is split over the ``"data"`` axis of ``mesh`` (default: all devices); state,
     key and metrics (``loss``, ``grad_norm``, ``lr``: scalars) are replicated. A thin wrapper
-    places the inputs (a no-op when they already are) and calls a jitted function whose
-    compilation is cached per (model, config, mesh).
+    places the inputs (a no-op when they already are; ``train_step.placed`` skips it) and
+    calls a jitted function whose compilation is cached per (model, config without seed and
+    logging fields, mesh): ``train`` uses the same compiled step.
     """
     mesh = shd.data_mesh() if mesh is None else mesh
     ab = _alphas_cumprod(config) if alphas_cumprod is None else jnp.asarray(alphas_cumprod)
+    ab = shd.replicate(ab, mesh)
     cfg = _compute_cfg(config)
     _static(model, "model")
 
-    def train_step(state: TrainState, batch: Batch, key: jax.Array):
-        return _train_step_jit(shd.replicate(state, mesh), shd.shard_batch(Batch(*batch), mesh),
-                               shd.replicate(key, mesh), shd.replicate(ab, mesh),
-                               model=model, config=cfg, mesh=mesh)
+    def placed(state: TrainState, batch: Batch, key: jax.Array):
+        return _train_step_jit(state, batch, key, ab, model=model, config=cfg, mesh=mesh)
 
+    def train_step(state: TrainState, batch: Batch, key: jax.Array):
+        return placed(shd.replicate(state, mesh), shd.shard_batch(Batch(*batch), mesh),
+                      shd.replicate(key, mesh))
+
+    train_step.placed = placed
     return train_step
 
 
 # ------------------------------------------------------------------------------- the loop
 
-def _fresh_carry():
-    return {"loss_sum": jnp.zeros((), jnp.float32), "count": jnp.zeros((), jnp.int32),
-            "grad_norm": jnp.zeros((), jnp.float32), "lr": jnp.zeros((), jnp.float32),
-            "first_bad": jnp.full((), -1, jnp.int32)}
+@functools.partial(jax.jit, static_argnames=("batch_fn", "batch_size", "mesh"))
+def _draw_batch(data_root, step, *, batch_fn, batch_size, mesh):
+    """(batch of step ``step``, loss key of step ``step``) from ``fold_in(data_root, step)``.
 
-
-@functools.partial(jax.jit, static_argnames=("model", "config", "batch_fn", "mesh"),
-                   donate_argnums=(0, 1))
-def _loop_step(state, carry, alphas_cumprod, *, model, config, batch_fn, mesh):
-    """(state, carry) -> (state, carry): draws the batch of step ``state.step`` from
-    ``batch_fn`` with ``step_key(seed, step)`` and takes one optimisation step; ``carry``
-    accumulates the loss, the last grad norm / lr, and the first non-finite step (1-based)."""
-    state = shd.constrain_replicated(state, mesh)
-    key = jax.random.fold_in(_root_keys(config.seed)[1], state.step)
-    batch_key, loss_key = jax.random.split(key)
-    batch = shd.constrain_batch(Batch(*batch_fn(batch_key, config.batch_size)), mesh)
-    step = state.step
-    state, m = _make_core_step(model, config, alphas_cumprod)(state, batch, loss_key)
-    finite = jnp.isfinite(m["loss"]) & jnp.isfinite(m["grad_norm"])
-    first_bad = jnp.where((carry["first_bad"] < 0) & ~finite, step + 1, carry["first_bad"])
-    carry = {"loss_sum": carry["loss_sum"] + m["loss"], "count": carry["count"] + 1,
-             "grad_norm": m["grad_norm"], "lr": m["lr"], "first_bad": first_bad}
-    return shd.constrain_replicated((state, carry), mesh)
+    ``step`` is traced, so one compilation serves every step (and every seed)."""
+    batch_key, loss_key = jax.random.split(jax.random.fold_in(data_root, step))
+    batch = shd.constrain_batch(Batch(*batch_fn(batch_key, batch_size)), mesh)
+    return batch, shd.constrain_replicated(loss_key, mesh)
 
 
 @functools.partial(jax.jit, static_argnames=("model", "config", "batch_fn", "mesh"))
-def _val_loss(params, alphas_cumprod, *, model, config, batch_fn, mesh):
+def _val_loss(params, val_root, alphas_cumprod, *, model, config, batch_fn, mesh):
     """Mean loss of ``params`` over ``config.val_batches`` batches with fixed keys."""
-    val_root = _root_keys(config.seed)[2]
 
     def body(total, j):
         batch_key, loss_key = jax.random.split(jax.random.fold_in(val_root, j))
@@ -448,6 +438,36 @@ def _val_loss(params, alphas_cumprod, *, model, config, batch_fn, mesh):
 
     total, _ = jax.lax.scan(body, jnp.zeros((), jnp.float32), jnp.arange(config.val_batches))
     return shd.constrain_replicated(total / config.val_batches, mesh)
+
+
+class _Window:
+    """Per-step metrics (device scalars) since the last log; fetched to the host only at
+    check points, so the loop does not wait for the device every step."""
+
+    def __init__(self):
+        self.pending = []  # (step, metrics on device)
+        self.host = []  # (step, loss, grad_norm, lr)
+
+    def add(self, step, metrics):
+        self.pending.append((step, metrics))
+
+    def fetch(self):
+        if self.pending:
+            vals = jax.device_get([m for _, m in self.pending])
+            self.host += [(s, float(v["loss"]), float(v["grad_norm"]), float(v["lr"]))
+                          for (s, _), v in zip(self.pending, vals)]
+            self.pending = []
+        for s, loss, gn, _ in self.host:
+            if not (math.isfinite(loss) and math.isfinite(gn)):
+                return s  # the first non-finite step (1-based count)
+        return None
+
+    def summary(self):
+        """Mean loss, last grad norm and lr of the window; then clears it."""
+        out = {"loss": float(np.mean([h[1] for h in self.host])),
+               "grad_norm": self.host[-1][2], "lr": self.host[-1][3]}
+        self.host = []
+        return out
 
 
 def _truncate_metrics(path: str, after_step: int) -> None:
@@ -608,16 +628,16 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
     if start >= cfg.steps:
         return TrainResult(state, None, None)
 
-    ab = shd.replicate(_alphas_cumprod(cfg), mesh)
-    ccfg = _compute_cfg(cfg)
-    loop_step = functools.partial(_loop_step, alphas_cumprod=ab, model=model, config=ccfg,
-                                  batch_fn=batch_fn, mesh=mesh)
+    _, data_root, val_root = shd.replicate(_root_keys(cfg.seed), mesh)
+    train_step = make_train_step(model, cfg, mesh=mesh)
     val_fn = None
     if cfg.val_every > 0:
-        vfn = _static(val_batch_fn or batch_fn, "val_batch_fn")
-        val_fn = functools.partial(_val_loss, alphas_cumprod=ab, model=model,
-                                   config=dataclasses.replace(ccfg, val_batches=cfg.val_batches),
-                                   batch_fn=vfn, mesh=mesh)
+        val_cfg = dataclasses.replace(_compute_cfg(cfg), val_batches=cfg.val_batches)
+        val_fn = functools.partial(
+            _val_loss, val_root=val_root,
+            alphas_cumprod=shd.replicate(_alphas_cumprod(cfg), mesh), model=model,
+            config=val_cfg, batch_fn=_static(val_batch_fn or batch_fn, "val_batch_fn"),
+            mesh=mesh)
 
     writer = None
     if tensorboard:
@@ -633,12 +653,12 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
 
     t0 = time.perf_counter()
     t_last, step_last = t0, start
-    carry = jax.device_put(_fresh_carry(), repl)
+    window = _Window()
     final_loss, last_record = None, None
 
-    def check_finite(carry, step):
-        bad = int(carry["first_bad"])
-        if bad < 0:
+    def check_finite(step):
+        bad = window.fetch()
+        if bad is None:
             return
         where = (f"the last good checkpoint is step {last_ckpt} in {out_dir!r} (left intact)"
                  if last_ckpt is not None else "no checkpoint had been saved yet")
@@ -649,8 +669,11 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
 
     try:
         for i in range(start, cfg.steps):
-            state, carry = loop_step(state, carry)
+            batch, loss_key = _draw_batch(data_root, i, batch_fn=batch_fn,
+                                          batch_size=cfg.batch_size, mesh=mesh)
+            state, metrics = train_step.placed(state, batch, loss_key)
             done = i + 1
+            window.add(done, metrics)
             is_last = done == cfg.steps
             do_log = done % cfg.log_every == 0 or is_last
             do_ckpt = done % cfg.checkpoint_every == 0 or is_last
@@ -659,21 +682,17 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
                 bar.update(1)
             if not (do_log or do_ckpt or do_val) and (done - start) % _SYNC_EVERY:
                 continue
-            check_finite(carry, done)
+            check_finite(done)
             if do_log or do_val:
-                host = jax.device_get(carry)
                 now = time.perf_counter()
-                record = {"step": done,
-                          "loss": float(host["loss_sum"]) / max(int(host["count"]), 1),
-                          "lr": float(host["lr"]), "grad_norm": float(host["grad_norm"]),
+                record = {"step": done, **window.summary(),
                           "steps_per_sec": (done - step_last) / max(now - t_last, 1e-9),
                           "wall_time": wall_before + now - t0}
                 if do_val:
                     record["val_loss"] = float(val_fn(state.ema_params))
                 final_loss = record["loss"]
                 last_record = record
-                t_last, step_last = now, done
-                carry = jax.device_put(_fresh_carry(), repl)
+                t_last, step_last = time.perf_counter(), done
                 with open(metrics_path, "a") as f:
                     f.write(json.dumps(record) + "\n")
                 if writer is not None:

@@ -72,10 +72,13 @@ def state(model):
     """A TrainState with distinct, non-trivial values in every part."""
     s0 = init_train_state(model, CFG, SHAPES)
 
+    def bump(x):
+        return x + (jnp.asarray(0.25, x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else 3)
+
     @jax.jit
     def perturb(s):
-        bump = lambda x: x + jnp.asarray(0.25, x.dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x + 3
-        return TrainState(params=s.params, ema_params=jax.tree_util.tree_map(lambda p: p * 0.5, s.params),
+        return TrainState(params=s.params,
+                          ema_params=jax.tree_util.tree_map(lambda p: p * 0.5, s.params),
                           opt_state=jax.tree_util.tree_map(bump, s.opt_state), step=s.step + 5)
 
     return perturb(s0)
@@ -101,7 +104,8 @@ def test_train_checkpoint_round_trip(train_dir, state, model):
     assert_trees_equal(restored.params, state.params)
     assert_trees_equal(restored.ema_params, state.ema_params)
     assert_trees_equal(restored.opt_state, state.opt_state)
-    assert jax.tree_util.tree_structure(restored.opt_state) == jax.tree_util.tree_structure(state.opt_state)
+    struct = jax.tree_util.tree_structure
+    assert struct(restored.opt_state) == struct(state.opt_state)
     assert int(restored.step) == 5
     assert meta["kind"] == "train" and meta["step"] == 5 and meta["extra"] == {"task": "toy"}
     assert meta["model_class"].endswith(":TinyDenoiser")
@@ -130,7 +134,8 @@ def test_keeps_latest_two_and_refuses_to_overwrite(tmp_path, state, metadata):
 def test_mismatched_config_or_shapes_raise_value_error(train_dir, state, model):
     params, meta = ckpt.load_params_for_eval(train_dir, TinyConfig(), model=model)
     assert_trees_equal(params, state.ema_params)
-    with pytest.raises(ValueError, match=r"model config mismatch.*features: stored 8, requested 16"):
+    with pytest.raises(ValueError, match=r"model config mismatch.*features: stored 8, "
+                                         r"requested 16"):
         ckpt.load_params_for_eval(train_dir, TinyConfig(features=16), model=model)
     with pytest.raises(ValueError, match=r"vocab: stored 16, requested 32"):
         ckpt.load_params_for_eval(train_dir, {"features": 8, "vocab": 32}, model=model)

@@ -158,7 +158,8 @@ def test_loss_noises_only_generated_channels_and_respects_mask():
 
 # One configuration shared by the loop tests: the jitted loop step is compiled once (jit
 # caches are keyed by model, config, batch_fn and mesh) and reused by the resumed runs.
-LOOP_CFG = small_cfg(steps=60, batch_size=8, warmup_steps=5, checkpoint_every=20, log_every=1)
+LOOP_CFG = small_cfg(steps=60, batch_size=8, warmup_steps=5, checkpoint_every=20, log_every=1,
+                     val_every=30, val_batches=2)
 
 
 @pytest.fixture(scope="module")
@@ -182,6 +183,9 @@ def test_training_lowers_the_loss(trained):
     print(f"toy loss: first 10 steps {first:.4f} -> last 10 steps {last:.4f}")
     assert last < 0.8 * first, (first, last)
     assert result.final_loss == recs[-1]["loss"]
+    # Validation (EMA params, fixed batches) at steps 30 and 60 only.
+    assert [r["step"] for r in recs if "val_loss" in r] == [30, 60]
+    assert all(np.isfinite(r["val_loss"]) for r in recs if "val_loss" in r)
     assert int(result.state.step) == 60
     assert ckpt.all_steps(out) == [40, 60]  # latest 2 kept
     # The EMA moved away from the initial params but differs from the raw params.
@@ -200,7 +204,8 @@ def test_finished_run_is_not_retrained_and_config_mismatch_raises(trained):
     kw = dict(progress=False, extra_metadata={"task": "toy"})
     again = train(TinyDenoiser(TinyConfig()), TinyConfig(), cfg, toy_batch_fn, out, **kw)
     assert int(again.state.step) == 60 and leaves_close(again.state.params, result.state.params, 0)
-    with pytest.raises(ConfigMismatchError, match=r"model_config\.features: stored 8, requested 16"):
+    with pytest.raises(ConfigMismatchError,
+                       match=r"model_config\.features: stored 8, requested 16"):
         train(TinyDenoiser(TinyConfig(features=16)), TinyConfig(features=16), cfg, toy_batch_fn,
               out, **kw)
     with pytest.raises(ValueError, match=r"train_config\.lr: stored 0\.003, requested 0\.001"):
@@ -259,7 +264,8 @@ def test_step_keys_depend_only_on_seed_and_step():
 
 
 def test_nan_loss_raises_and_keeps_last_checkpoint(tmp_path):
-    cfg = small_cfg(steps=16, log_every=4, checkpoint_every=4)
+    # Same optimisation settings as LOOP_CFG (so the compiled step is reused), another seed.
+    cfg = dataclasses.replace(LOOP_CFG, seed=11, log_every=4, checkpoint_every=4, val_every=0)
     bad_step = 10  # 0-based index: the 11th step; checkpoint 12 must not be written
     bad_key = jax.random.key_data(jax.random.split(step_key(cfg.seed, bad_step))[0])
 
@@ -282,7 +288,7 @@ def test_nan_loss_raises_and_keeps_last_checkpoint(tmp_path):
 
 
 def test_public_train_step_is_pure_and_learns():
-    cfg = small_cfg(steps=30, batch_size=8, lr=1e-2)
+    cfg = LOOP_CFG  # the step compiled for the loop tests is reused
     model = TinyDenoiser(TinyConfig())
     batch = make_batch(jax.random.PRNGKey(0), 8)
     state0 = init_train_state(model, cfg, batch)
@@ -294,7 +300,7 @@ def test_public_train_step_is_pure_and_learns():
     assert leaves_close(s1.params, s1b.params, 0)
     assert float(m1["lr"]) == 0.0  # first step of the warm-up
     s = s1
-    for i in range(8):
+    for i in range(10):
         s, m = step(s, batch, key)  # same batch and noise: the loss must go down
     assert float(m["loss"]) < float(m1["loss"])
     assert np.isfinite(float(m["grad_norm"]))

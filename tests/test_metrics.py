@@ -1,0 +1,78 @@
+"""diffplan.metrics against hand-computed cases."""
+import numpy as np
+import pytest
+
+from diffplan import metrics
+
+
+def _path_mask(cells, size=4):
+    m = np.zeros((size, size), bool)
+    for r, c in cells:
+        m[r, c] = True
+    return m
+
+
+def test_executed_cells_respects_steps():
+    pos = np.array([[[0, 0], [0, 1], [0, 2], [3, 3]]])  # the 4th entry is beyond steps
+    mask = metrics.executed_cells(pos, np.array([2]), 4)
+    np.testing.assert_array_equal(mask[0], _path_mask([(0, 0), (0, 1), (0, 2)]))
+
+
+def test_two_episodes_by_hand():
+    # Episode 0: expert (0,0)->(0,1)->(0,2); agent walks it exactly and succeeds.
+    # Episode 1: expert (0,0)->(1,0)->(2,0); agent goes (0,0)->(0,1) and stops: fails.
+    positions = np.array([
+        [[0, 0], [0, 1], [0, 2], [0, 2]],
+        [[0, 0], [0, 1], [0, 1], [0, 1]],
+    ])
+    steps = np.array([2, 3])
+    target = np.array([[0, 2], [2, 0]])
+    expert = np.stack([_path_mask([(0, 0), (0, 1), (0, 2)]), _path_mask([(0, 0), (1, 0), (2, 0)])])
+    out = metrics.trajectory_metrics(positions, steps, target, expert)
+    assert out["SR"] == pytest.approx(50.0)
+    # GD: 0 and |(0,1)-(2,0)| = sqrt(5).
+    assert out["GD"] == pytest.approx(np.sqrt(5) / 2)
+    # Executed cells: 3 + 2 = 5; true positives: 3 + 1 = 4; expert cells: 6.
+    assert out["path_precision"] == pytest.approx(80.0)
+    assert out["path_recall"] == pytest.approx(400 / 6)
+    p, r = 80.0, 400 / 6
+    assert out["path_f1"] == pytest.approx(2 * p * r / (p + r))
+    assert out["mean_steps"] == pytest.approx(2.5)
+    assert "SR_ordered" not in out
+
+
+def test_sr_ordered_needs_the_reference_first():
+    positions = np.array([
+        [[0, 0], [1, 0], [1, 1], [1, 1]],  # via reference (1,0) to target (1,1)
+        [[0, 0], [0, 1], [1, 1], [1, 1]],  # straight to the target, reference skipped
+    ])
+    steps = np.array([2, 2])
+    target = np.array([[1, 1], [1, 1]])
+    reference = np.array([[1, 0], [1, 0]])
+    expert = np.stack([_path_mask([(0, 0), (1, 0), (1, 1)])] * 2)
+    out = metrics.trajectory_metrics(positions, steps, target, expert, reference)
+    assert out["SR"] == pytest.approx(100.0)
+    assert out["SR_ordered"] == pytest.approx(50.0)
+
+
+def test_reference_after_the_end_does_not_count():
+    positions = np.array([[[0, 0], [0, 1], [1, 1], [1, 0]]])  # (1,0) visited after the end
+    out = metrics.trajectory_metrics(positions, np.array([2]), np.array([[1, 1]]),
+                                     _path_mask([(0, 0), (1, 0), (1, 1)])[None],
+                                     np.array([[1, 0]]))
+    assert out["SR_ordered"] == 0.0
+
+
+def test_plan_metrics_threshold_at_zero():
+    plan = np.full((1, 4, 4), -1.0)
+    plan[0, 0, 0] = plan[0, 0, 1] = 0.5
+    plan[0, 3, 3] = 0.1
+    expert = _path_mask([(0, 0), (0, 1), (0, 2)])[None]
+    out = metrics.plan_metrics(plan, expert)
+    assert out["plan_precision"] == pytest.approx(200 / 3)
+    assert out["plan_recall"] == pytest.approx(200 / 3)
+
+
+def test_empty_predictions_give_zero_not_nan():
+    p, r, f = metrics.precision_recall_f1(np.zeros((1, 4, 4), bool), np.ones((1, 4, 4), bool))
+    assert (p, r, f) == (0.0, 0.0, 0.0)
