@@ -255,11 +255,6 @@ def read_metadata(directory: str, step: Optional[int] = None) -> dict:
     return meta
 
 
-def _item_names(m: ocp.CheckpointManager, step: int) -> set:
-    md = m.item_metadata(step)
-    return {k for k in md.keys()} if hasattr(md, "keys") else set()
-
-
 def load_checkpoint(directory: str, step: Optional[int] = None, *, target: Any = None,
                     sharding=None) -> tuple[Any, dict]:
     """Loads checkpoint ``step`` (default: the latest) from ``directory``.

@@ -25,7 +25,7 @@ import numpy as np
 import flax.linen as nn
 
 from diffplan.text_encoder import TextEncoder
-from diffplan.unet import UNet
+from diffplan.unet import UNet, fast_init
 
 __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "init_params",
            "GRID_REPRS"]
@@ -52,7 +52,8 @@ class DenoiserConfig:
       text_dim, text_layers, text_heads: text encoder width, depth, heads.
       groups: GroupNorm groups (divides every width).
       head_dim: channels per attention head in the UNet.
-      mid_block: UNet middle block at the lowest level.
+      mid_block: UNet middle block (ResBlock, transformer, ResBlock) at the lowest level;
+        off by default (it adds ~0.9M parameters and ~12% FLOPs to the default model).
     """
 
     vocab_size: int = 64
@@ -70,7 +71,7 @@ class DenoiserConfig:
     text_heads: int = 4
     groups: int = 8
     head_dim: int = 32
-    mid_block: bool = True
+    mid_block: bool = False
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -206,14 +207,17 @@ def init_params(model: Denoiser, key: jax.Array, height: int = 16, width: int = 
                 num_tokens: int | None = None, batch_size: int = 1):
     """Initialise the model's variables on dummy inputs of the given size.
 
-    Returns the variables dict ({"params": ...}) suitable for ``model.apply``.
+    Uses ``diffplan.unet.fast_init`` (cheap-to-compile initialisation; a plain
+    ``model.init`` gives a different but equally valid draw). The parameter shapes do not
+    depend on height/width/num_tokens/batch_size. Returns the variables dict
+    ({"params": ...}) suitable for ``model.apply``.
     """
     cfg = model.config
     num_tokens = cfg.max_tokens if num_tokens is None else num_tokens
     x = jnp.zeros((batch_size, height, width, cfg.num_channels), jnp.float32)
     t = jnp.zeros((batch_size,), jnp.int32)
     tokens = jnp.ones((batch_size, num_tokens), jnp.int32)
-    return model.init(key, x, t, tokens)
+    return fast_init(model, key, x, t, tokens)
 
 
 def make_denoise_fn(model: Denoiser, params, tokens: jax.Array

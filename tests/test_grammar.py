@@ -25,7 +25,8 @@ def all_fillings(setting):
 
 def test_vocabulary_layout():
     assert grammar.VOCAB[:4] == grammar.SPECIAL_TOKENS
-    assert (grammar.PAD_ID, grammar.UNSEEN_ID, grammar.EMPTY_ID, grammar.OBSTACLE_ID) == (0, 1, 2, 3)
+    special_ids = (grammar.PAD_ID, grammar.UNSEEN_ID, grammar.EMPTY_ID, grammar.OBSTACLE_ID)
+    assert special_ids == (0, 1, 2, 3)
     assert len(set(grammar.VOCAB)) == len(grammar.VOCAB)
     for k, name in enumerate(grammar.OBJECT_NAMES, start=1):
         assert grammar.VOCAB[grammar.class_to_token(k)] == name

@@ -50,7 +50,7 @@ def check_observation(obs_cells, obs_features, grid, agent, seen, visited, where
     np.testing.assert_array_equal(obs_features, features, err_msg=where)
 
 
-@settings(max_examples=4, deadline=None)
+@settings(max_examples=4, deadline=None, database=None)
 @given(seed=SEEDS)
 @pytest.mark.parametrize("setting", SETTINGS)
 def test_rollout_matches_numpy_dynamics(rollout, grid_configs, setting, seed):
@@ -183,7 +183,7 @@ def test_p_mo2g_target_hidden_reference_visible_at_t0(rollout):
     assert not (cells == target_tokens[:, None, None]).any((1, 2)).any()
 
 
-@settings(max_examples=4, deadline=None)
+@settings(max_examples=4, deadline=None, database=None)
 @given(seed=SEEDS)
 def test_observe_never_leaks_unseen_cells(rollout, observe_fn, grid_configs, seed):
     """Rewriting the world in unseen cells (and moving the hidden target/reference fields) does

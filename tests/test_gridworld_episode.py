@@ -108,7 +108,7 @@ def check_episode(config: GridConfig, ep, i: int, visible0):
     np.testing.assert_array_equal(ep.expert_path[i], mask, err_msg=msg)
 
 
-@settings(max_examples=5, deadline=None)
+@settings(max_examples=5, deadline=None, database=None)
 @given(seed=SEEDS)
 @pytest.mark.parametrize("setting", SETTINGS)
 def test_generated_episodes_are_valid(gen_batch, grid_configs, setting, seed):

@@ -52,11 +52,22 @@ class TinyDenoiser(nn.Module):
         return nn.Conv(c.gen, (3, 3))(nn.silu(h))
 
 
+def hash_uniform(key, shape):
+    """Cheap deterministic U[0, 1) numbers from a PRNG key (an integer hash of the key data and
+    the element index): toy data without threefry, which is slow to compile on CPU."""
+    kd = jax.random.key_data(key).astype(jnp.uint32).reshape(-1)
+    h = jnp.arange(int(np.prod(shape)), dtype=jnp.uint32) * jnp.uint32(0x9E3779B1) + kd[0]
+    for mult, shift in ((0x85EBCA6B, 13), (0xC2B2AE35, 16), (0x27D4EB2F, 15)):
+        h = (h ^ (h >> 16) ^ kd[1]) * jnp.uint32(mult)
+        h = h ^ (h >> shift)
+    return (h >> 8).astype(jnp.float32).reshape(shape) / float(1 << 24)
+
+
 def toy_batch_fn(key, batch_size):
     """Path = free cells, goal = a corner chosen by the first token: learnable from conditions."""
-    k1, k2 = jax.random.split(key)
-    obst = (jax.random.uniform(k1, (batch_size, H, W)) < 0.3).astype(jnp.float32)
-    tok = jax.random.randint(k2, (batch_size, L), 1, 16).astype(jnp.int32)
+    u = hash_uniform(key, (batch_size, H * W + L))
+    obst = (u[:, :H * W] < 0.3).astype(jnp.float32).reshape(batch_size, H, W)
+    tok = 1 + (u[:, H * W:] * 15).astype(jnp.int32)
     cell = jnp.where(obst > 0, 3.0, 2.0)
     path = jnp.where(obst > 0, -1.0, 1.0)
     corner = (tok[:, 0] % 2) * (H - 1)

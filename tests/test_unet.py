@@ -5,18 +5,33 @@ import numpy as np
 import pytest
 
 from diffplan.text_encoder import TextEncoder
-from diffplan.unet import MultiHeadAttention, UNet, timestep_embedding
+from diffplan.unet import FAST_COMPILE_OPTIONS, MultiHeadAttention, UNet, timestep_embedding
 
 TINY = dict(out_channels=2, widths=(8, 16), num_res_blocks=1, attn_levels=(1,),
-            cross_attn_levels=(0, 1), groups=4, head_dim=8)
+            cross_attn_levels=(1,), groups=4, head_dim=8, mid_block=False)
 
 
-def perturb(variables, scale=0.2, seed=1):
-    """Add noise to every parameter (zero-initialised layers become non-trivial)."""
-    leaves, treedef = jax.tree_util.tree_flatten(variables)
-    keys = jax.random.split(jax.random.PRNGKey(seed), len(leaves))
-    leaves = [p + scale * jax.random.normal(k, p.shape, p.dtype) for p, k in zip(leaves, keys)]
-    return jax.tree_util.tree_unflatten(treedef, leaves)
+def jit(f):
+    """jit without LLVM optimisation: these tiny models run in microseconds anyway."""
+    return jax.jit(f, compiler_options=FAST_COMPILE_OPTIONS)
+
+
+def random_variables(module, *args, seed=0):
+    """Random (non-trivial, well-scaled) variables with the structure of ``module.init``.
+
+    Built on the host from ``jax.eval_shape`` (no compile): the zero-initialised layers get
+    random values too. The real initialisation is tested in test_denoiser.py.
+    """
+    shapes = jax.eval_shape(module.init, jax.random.PRNGKey(0), *args)
+    rng = np.random.default_rng(seed)
+
+    def draw(path, leaf):
+        name = jax.tree_util.keystr(path[-1:])
+        std = 1.0 / np.sqrt(np.prod(leaf.shape[:-1])) if "kernel" in name else 0.1
+        base = 1.0 if "scale" in name else 0.0
+        return jnp.asarray(base + std * rng.standard_normal(leaf.shape), leaf.dtype)
+
+    return jax.tree_util.tree_map_with_path(draw, shapes)
 
 
 @pytest.fixture(scope="session")
@@ -25,8 +40,8 @@ def tiny_unet():
     x = jnp.zeros((2, 8, 12, 3))
     t = jnp.zeros((2,), jnp.int32)
     ctx = jnp.zeros((2, 5, 16))
-    variables = model.init(jax.random.PRNGKey(0), x, t, ctx, jnp.ones((2, 5), bool))
-    return model, variables, jax.jit(model.apply)
+    variables = random_variables(model, x, t, ctx, jnp.ones((2, 5), bool))
+    return model, variables, jit(model.apply)
 
 
 def _inputs(b=2, h=8, w=12, c=3, length=5, seed=0):
@@ -47,20 +62,24 @@ def test_timestep_embedding_shape_and_values():
         timestep_embedding(jnp.array([0]), 7)
 
 
-def test_unet_shape_and_zero_init(tiny_unet):
+def test_unet_shape_and_zero_output_conv(tiny_unet):
     model, variables, apply = tiny_unet
     x, t, ctx, mask = _inputs()
     y = apply(variables, x, t, ctx, mask)
     assert y.shape == (2, 8, 12, 2) and y.dtype == jnp.float32
-    assert np.all(np.asarray(y) == 0.0)  # zero-initialised output conv
-    y2 = apply(perturb(variables), x, t, ctx, mask)
-    assert np.abs(np.asarray(y2)).max() > 1e-3
-    assert np.all(np.isfinite(np.asarray(y2)))
+    assert np.abs(np.asarray(y)).max() > 1e-3
+    assert np.all(np.isfinite(np.asarray(y)))
+    # with the output conv at its (zero) initial value the UNet outputs exactly zero
+    p = variables["params"]
+    zero_out = {"params": {**p, "conv_out": jax.tree_util.tree_map(jnp.zeros_like,
+                                                                     p["conv_out"])}}
+    assert np.all(np.asarray(apply(zero_out, x, t, ctx, mask)) == 0.0)
+    shapes = jax.eval_shape(model.init, jax.random.PRNGKey(0), x, t, ctx, mask)
+    assert shapes["params"]["conv_out"]["kernel"].shape == (3, 3, 8, 2)
 
 
 def test_unet_depends_on_t_and_context(tiny_unet):
-    model, variables, apply = tiny_unet
-    v = perturb(variables)
+    model, v, apply = tiny_unet
     x, t, ctx, mask = _inputs()
     y = apply(v, x, t, ctx, mask)
     assert not np.allclose(y, apply(v, x, t + 10, ctx, mask), atol=1e-4)
@@ -68,18 +87,16 @@ def test_unet_depends_on_t_and_context(tiny_unet):
 
 
 def test_unet_vmap_matches_loop(tiny_unet):
-    model, variables, _ = tiny_unet
-    v = perturb(variables)
+    model, v, apply = tiny_unet
     x, t, ctx, mask = _inputs(b=2)
     xs = jnp.stack([x, x[::-1]])
     ts = jnp.stack([t, t[::-1]])
     ctxs = jnp.stack([ctx, ctx[::-1]])
     masks = jnp.stack([mask, mask])
-    f = jax.jit(jax.vmap(lambda a, b, c, d: model.apply(v, a, b, c, d)))
+    f = jit(jax.vmap(lambda a, b, c, d: model.apply(v, a, b, c, d)))
     ys = f(xs, ts, ctxs, masks)
     assert ys.shape == (2, 2, 8, 12, 2)
-    np.testing.assert_allclose(ys[1], model.apply(v, x[::-1], t[::-1], ctx[::-1], mask),
-                               atol=1e-5)
+    np.testing.assert_allclose(ys[1], apply(v, x[::-1], t[::-1], ctx[::-1], mask), atol=1e-5)
 
 
 @pytest.mark.parametrize("hw", [(7, 8), (8, 5)])
@@ -87,7 +104,8 @@ def test_unet_bad_hw_raises(tiny_unet, hw):
     model, variables, _ = tiny_unet
     x = jnp.zeros((1, *hw, 3))
     with pytest.raises(ValueError, match="divisible by 2"):
-        model.apply(variables, x, jnp.zeros((1,), jnp.int32), jnp.zeros((1, 5, 16)))
+        jax.eval_shape(model.apply, variables, x, jnp.zeros((1,), jnp.int32),
+                       jnp.zeros((1, 5, 16)))
 
 
 @pytest.mark.parametrize("override, match", [
@@ -107,34 +125,36 @@ def test_attention_padding_mask():
     att = MultiHeadAttention(num_heads=2)
     x = jax.random.normal(jax.random.PRNGKey(0), (1, 4, 8))
     ctx = jax.random.normal(jax.random.PRNGKey(1), (1, 6, 8))
-    v = att.init(jax.random.PRNGKey(2), x, ctx)
+    v = random_variables(att, x, ctx)
+    apply = jit(att.apply)
     mask = jnp.array([[True, True, True, False, False, False]])
-    y = att.apply(v, x, ctx, mask)
+    y = apply(v, x, ctx, mask)
     # padded keys carry arbitrary values: the output must not change
     ctx2 = ctx.at[:, 3:].set(100.0)
-    np.testing.assert_allclose(y, att.apply(v, x, ctx2, mask), atol=1e-6)
+    np.testing.assert_allclose(y, apply(v, x, ctx2, mask), atol=1e-6)
     # truncating the padding gives the same output
-    np.testing.assert_allclose(y, att.apply(v, x, ctx[:, :3], mask[:, :3]), atol=1e-5)
+    np.testing.assert_allclose(y, apply(v, x, ctx[:, :3], mask[:, :3]), atol=1e-5)
     # a fully padded context contributes exactly nothing
-    y0 = att.apply(v, x, ctx, jnp.zeros_like(mask))
+    y0 = apply(v, x, ctx, jnp.zeros_like(mask))
     assert np.all(np.asarray(y0) == 0.0)
     # real keys do matter
-    assert not np.allclose(y, att.apply(v, x, ctx.at[:, 0].set(5.0), mask), atol=1e-4)
+    assert not np.allclose(y, apply(v, x, ctx.at[:, 0].set(5.0), mask), atol=1e-4)
 
 
 def test_text_encoder_shapes_padding_and_limits():
     enc = TextEncoder(vocab_size=20, max_tokens=10, dim=16, num_layers=2, num_heads=2)
     tok = jnp.array([[5, 6, 7, 0, 0, 0], [9, 0, 0, 0, 0, 0]], jnp.int32)
-    v = enc.init(jax.random.PRNGKey(0), tok)
+    v = random_variables(enc, tok)
     assert "token_embed" in v["params"] and "pos_embed" in v["params"]
     assert v["params"]["pos_embed"].shape == (10, 16)
-    feats, mask = enc.apply(v, tok)
+    apply = jit(enc.apply)
+    feats, mask = apply(v, tok)
     assert feats.shape == (2, 6, 16) and mask.shape == (2, 6)
     np.testing.assert_array_equal(mask, tok != 0)
-    feats_short, _ = enc.apply(v, tok[:, :3])
+    feats_short, _ = apply(v, tok[:, :3])
     np.testing.assert_allclose(feats[:, :3][mask[:, :3]], feats_short[mask[:, :3]], atol=1e-5)
     with pytest.raises(ValueError, match="max_tokens"):
-        enc.apply(v, jnp.ones((1, 11), jnp.int32))
+        jax.eval_shape(enc.apply, v, jnp.ones((1, 11), jnp.int32))
     with pytest.raises(ValueError, match="num_heads"):
-        TextEncoder(vocab_size=20, max_tokens=10, dim=15, num_heads=2).init(
-            jax.random.PRNGKey(0), tok)
+        jax.eval_shape(TextEncoder(vocab_size=20, max_tokens=10, dim=15, num_heads=2).init,
+                       jax.random.PRNGKey(0), tok)

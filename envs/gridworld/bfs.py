@@ -76,10 +76,11 @@ def bfs_distance(passable, source):
     return jnp.where(field >= INF, -1, field).astype(jnp.int32)
 
 
-def neighbours(pos, size):
-    """(4, 2) neighbour cells of pos (N, E, S, W) and bool (4,) whether each is on the grid."""
+def neighbours(pos, shape):
+    """(4, 2) neighbour cells of pos (N, E, S, W) and bool (4,) whether each is on a grid of
+    the given (H, W) shape."""
     cells = pos[None, :] + MOVES
-    inside = jnp.all((cells >= 0) & (cells < size), axis=-1)
+    inside = jnp.all((cells >= 0) & (cells < jnp.array(shape[:2])), axis=-1)
     return cells, inside
 
 
@@ -90,8 +91,8 @@ def best_move(field, passable, pos, enter_cost=None):
     passable it returns 0 (the move will collide). Returns int32 ().
     """
     h, w = field.shape
-    cells, inside = neighbours(pos, h)
-    clipped = jnp.clip(cells, 0, h - 1)
+    cells, inside = neighbours(pos, (h, w))
+    clipped = jnp.clip(cells, 0, jnp.array([h - 1, w - 1]))
     value = field[clipped[:, 0], clipped[:, 1]]
     if enter_cost is not None:
         value = value + enter_cost[clipped[:, 0], clipped[:, 1]]

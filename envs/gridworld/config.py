@@ -63,8 +63,12 @@ class GridConfig:
                 f"fit in {self.size * self.size} cells")
         if self.view_radius is not None and self.view_radius < 0:
             errors.append(f"view_radius must be >= 0 or None, got {self.view_radius}")
-        if self.max_steps < 1:
-            errors.append(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.max_steps < self.longest_expert_path():
+            errors.append(
+                f"max_steps={self.max_steps} is below {self.longest_expert_path()}, the longest "
+                "obstacle-free expert path of this setting: some episodes would be unsolvable")
+        if self.ref_target_radius < 1:
+            errors.append(f"ref_target_radius must be >= 1, got {self.ref_target_radius}")
         if self.setting == "p_mo2g":
             if self.view_radius is None:
                 errors.append("p_mo2g needs a finite view_radius (it is partially observable)")
@@ -82,6 +86,12 @@ class GridConfig:
             errors.append("1o1g has exactly one object (min_objects = max_objects = 1)")
         if errors:
             raise ValueError("invalid GridConfig: " + "; ".join(errors))
+
+    def longest_expert_path(self) -> int:
+        """Moves of the longest expert path on an obstacle-free grid of this setting."""
+        if self.setting == "p_mo2g" and self.view_radius is not None:
+            return 2 * self.view_radius + 2 * self.ref_target_radius
+        return 2 * (self.size - 1)
 
     @property
     def has_reference(self) -> bool:

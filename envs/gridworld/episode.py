@@ -169,7 +169,9 @@ def generate(key, config: GridConfig) -> Episode:
         return _expert(config, ~obstacles, agent, target, reference)
 
     def cond(carry):
-        return ~carry[4]
+        # The obstacle-free fallback is always solvable (GridConfig checks max_steps), so the
+        # attempt cap is only a guard.
+        return ~carry[4] & (carry[0] <= _MAX_LAYOUT_TRIES + 1)
 
     def body(carry):
         attempt, _, _, _, _ = carry

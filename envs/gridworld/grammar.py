@@ -64,11 +64,12 @@ TEMPLATES: dict[str, tuple[str, ...]] = {
 SLOT_REF, SLOT_TARGET, SLOT_DIR = -1, -2, -3
 _SLOTS = {"{ref}": SLOT_REF, "{target}": SLOT_TARGET, "{dir}": SLOT_DIR}
 
-_WORD_RE = re.compile(r"\{[a-z]+\}|[a-z]+|[.,]")
+_WORD_RE = re.compile(r"\{[a-z]+\}|[a-z]+|[.,]|[^\sa-z.,]+")
 
 
 def split_words(text: str) -> list[str]:
-    """Lower-cases and splits text into words and punctuation tokens ('.' and ',')."""
+    """Lower-cases and splits text into words and punctuation tokens ('.' and ','); any other
+    run of characters (digits, '!', ...) becomes a word of its own (outside the vocabulary)."""
     return _WORD_RE.findall(text.lower())
 
 

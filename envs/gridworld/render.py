@@ -3,7 +3,7 @@
 ``render_episode`` draws one episode on an Axes or straight into a PNG file: the cells (obstacles
 dark, objects labelled with a short name), the agent (blue disc), the target (red frame) and the
 reference (green dashed frame), the cells not seen yet shaded grey (field of view), and optional
-overlays: a path map (blue), a goal-estimate map (magenta heat map, a cross at its maximum) and an
+overlays: a path map (blue), a goal-estimate map (magenta heat map, a ring at its maximum) and an
 executed trajectory (orange line). Row 0 (north) is at the top.
 
 Figures are built with ``matplotlib.figure.Figure`` directly (the Agg canvas), so importing this
@@ -108,10 +108,11 @@ def _draw(ax, grid, agent, target, reference, instruction, *, seen, path, goal, 
             layer[..., 3] = 0.55 * g_norm
             ax.imshow(layer, extent=extent, interpolation="nearest", zorder=1)
             best = np.unravel_index(np.argmax(g), g.shape)
-            ax.plot(best[1], best[0], marker="X", markersize=11 * cell_size, color=_GOAL_RGB,
-                    markeredgecolor="white", markeredgewidth=0.8, linestyle="none", zorder=6)
-        handles.append(Line2D([], [], marker="X", color=_GOAL_RGB, markeredgecolor="white",
-                              linestyle="none", label="goal estimate"))
+            # A ring (not a filled marker) so that the cell's object label stays readable.
+            ax.plot(best[1], best[0], marker="o", markersize=17 * cell_size, fillstyle="none",
+                    color=_GOAL_RGB, markeredgewidth=2.2, linestyle="none", zorder=6)
+        handles.append(Line2D([], [], marker="o", fillstyle="none", color=_GOAL_RGB,
+                              markeredgewidth=2, linestyle="none", label="goal estimate"))
     if seen is not None:
         s = np.asarray(seen)
         if s.shape != grid.shape:
@@ -156,7 +157,7 @@ def _draw(ax, grid, agent, target, reference, instruction, *, seen, path, goal, 
         ax.add_patch(Circle((agent_cell[1], agent_cell[0]), 0.3, facecolor=_AGENT_COLOR,
                             edgecolor="white", linewidth=1.0, zorder=8))
         handles.insert(0, Line2D([], [], marker="o", color=_AGENT_COLOR, linestyle="none",
-                                 label="agent (start)" if executed is not None else "agent"))
+                                 label="agent"))
 
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
@@ -194,7 +195,7 @@ def render_episode(ax_or_path, grid, agent, target, reference, instruction, *, s
       instruction: str, shown under the title ("" or None for none).
       seen: bool (H, W) cells seen so far; the others are shaded grey.
       path: bool or float (H, W) path map (floats in [-1, 1] or [0, 1]), overlaid in blue.
-      goal: float (H, W) goal-estimate map (same ranges), a magenta heat map with a cross at its
+      goal: float (H, W) goal-estimate map (same ranges), a magenta heat map with a ring at its
         maximum.
       executed: int (T, 2) positions the agent went through, drawn as a line.
       title: optional title line; object_names: class names (default grammar.OBJECT_NAMES).

@@ -36,9 +36,12 @@ def condition_from_observation(obs: env.Observation):
     return jnp.concatenate([obs.cells[..., None].astype(jnp.float32), obs.features], axis=-1)
 
 
-def goal_cell(plan):
-    """int32 (2,): the argmax cell of the plan's goal channel (plan float32 (H, W, G))."""
+def goal_cell(plan, excluded=None):
+    """int32 (2,): the argmax cell of the plan's goal channel (plan float32 (H, W, G)), among
+    cells not in ``excluded`` (bool (H, W), e.g. known obstacles)."""
     goal = plan[..., 1]
+    if excluded is not None:
+        goal = jnp.where(excluded, -jnp.inf, goal)
     flat = jnp.argmax(goal.ravel())
     return jnp.stack([flat // goal.shape[1], flat % goal.shape[1]]).astype(jnp.int32)
 
@@ -52,7 +55,7 @@ def psi(state: env.State, plan, path_weight: float = 2.0):
     passable = ~known_obstacle
     path01 = (jnp.clip(plan[..., 0], -1.0, 1.0) + 1.0) / 2.0
     enter_cost = 1.0 + path_weight * (1.0 - path01)
-    goal = goal_cell(plan)
+    goal = goal_cell(plan, known_obstacle)
     field = bfs.cost_to_go(passable, goal, enter_cost)
     return bfs.best_move(field, passable, state.agent, enter_cost)
 
@@ -101,7 +104,8 @@ class GridTask:
         return state.agent
 
     def at_goal_estimate(self, state: env.State, plan):
-        return jnp.all(state.agent == goal_cell(plan))
+        known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+        return jnp.all(state.agent == goal_cell(plan, known_obstacle))
 
 
 def _state_along_expert(episode: Episode, config: GridConfig, index):
