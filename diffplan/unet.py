@@ -244,6 +244,12 @@ class UNet(nn.Module):
         its transformer uses self-/cross-attention if the lowest level does.
       temb_mult: the timestep MLP has widths[0] * temb_mult units.
 
+    Layout: conv_in; per level i: num_res_blocks x (ResBlock [+ SpatialTransformer]) then a
+    strided-conv Downsample (not after the last level); [mid block]; per level i from the
+    lowest: (num_res_blocks + 1) x (concat skip, ResBlock [+ SpatialTransformer]) then an
+    Upsample whose conv maps straight to widths[i - 1] (diffusers keeps widths[i]: twice the
+    FLOPs at the 4x larger resolution); GroupNorm, SiLU, zero-initialised conv_out.
+
     Call: x (B, H, W, C_in) float32, t (B,), context (B, L, D) | None, mask (B, L) bool | None
       -> (B, H, W, out_channels) float32. The output conv is zero-initialised, so a fresh
       model outputs exactly zero.
@@ -272,17 +278,16 @@ class UNet(nn.Module):
             raise ValueError(f"groups={self.groups} must divide every width {widths}")
         _check_levels("attn_levels", tuple(self.attn_levels), len(widths))
         _check_levels("cross_attn_levels", tuple(self.cross_attn_levels), len(widths))
-        att = set(self.attn_levels) | set(self.cross_attn_levels)
-        if self.mid_block and att & {len(widths) - 1}:
-            att = att | {len(widths) - 1}
+        att = set(self.attn_levels) | set(self.cross_attn_levels)  # (the mid block's too)
         if self.head_dim < 1:
             raise ValueError(f"head_dim must be positive, got {self.head_dim}")
         for lv in sorted(att):
             if widths[lv] % self.head_dim:
                 raise ValueError(f"head_dim={self.head_dim} must divide the width {widths[lv]} "
                                  f"of attention level {lv}")
-        if widths[0] * self.temb_mult % 2 or widths[0] % 2:
-            raise ValueError(f"widths[0]={widths[0]} must be even (timestep embedding)")
+        if widths[0] % 2 or self.temb_mult < 1:
+            raise ValueError(f"widths[0]={widths[0]} must be even (timestep embedding) and "
+                             f"temb_mult={self.temb_mult} >= 1")
 
     def _transformer(self, level: int, name: str) -> Optional[SpatialTransformer]:
         sa = level in tuple(self.attn_levels)

@@ -14,15 +14,18 @@ Measures in one run:
     --sampler-config model: the time of one call that plans --batch episodes at each of
     --sampler-steps, and the cost per plan (call time / batch).
 
-Times are medians over --repeats timed calls (the best is reported too; the machine may be
-shared with other jobs, so the matmul peak is re-measured at the end and the larger of the two
-is used). The first call of each jitted function (compilation or a load from JAX's persistent
+Times are medians over --repeats timed calls (the best is reported too). The machine may be
+shared with other jobs whose load changes by the second, so every timed call is paired with a
+matmul call just before it: percent_of_peak is the median over calls of the call's GFLOP/s
+over its adjacent matmul's GFLOP/s ("matmul_peak_gflops" in the JSON is the best matmul rate
+seen in the run). The first call of each jitted function (compilation or a load from JAX's persistent
 compilation cache, plus one run) is reported as compile_seconds. The target: the UNet forward
 at >= 40% of the matmul peak.
 
 JSON (contract 2 layout): {"experiment": "bench_unet", "episodes": batch, "seed", "rows":
 [{"method", "kind" ("matmul" | "forward" | "train_step" | "sampler"), "model", "params",
-"batch", "ms", "best_ms", "gflop", "gflops", "percent_of_peak", "compile_seconds", ...};
+"batch", "ms", "best_ms", "gflop", "gflops", "percent_of_peak", "adjacent_matmul_gflops",
+"compile_seconds", ...};
 sampler rows add "num_steps", "denoiser_calls", "ms_per_plan", "ms_per_call" and
 "time_over_forwards" (call time / (denoiser calls x forward time))],
 "matmul_peak_gflops", "target_percent_of_peak", "configs", "device", "jax_version"}.
@@ -82,45 +85,62 @@ def _flops(compiled) -> float | None:
     return float(ca["flops"])
 
 
-def _time_calls(fn, args, repeats: int) -> list[float]:
-    times = []
-    for _ in range(repeats):
+class PeakProbe:
+    """The matmul peak, measured next to every timed call.
+
+    The machine may be shared with other jobs whose load changes from second to second, so
+    each timed call of a benchmarked function is paired with a matmul call just before it and
+    its percent of peak is the median over pairs of (its GFLOP/s) / (that matmul's GFLOP/s).
+    """
+
+    def __init__(self, n: int):
+        a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
+        b = jax.random.normal(jax.random.PRNGKey(1), (n, n), jnp.float32)
+        self.n, self.args = n, (a, b)
+        self.flops = 2.0 * n ** 3
         start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return times
+        self.fn = jax.jit(jnp.matmul).lower(a, b).compile()
+        jax.block_until_ready(self.fn(a, b))
+        self.compile_seconds = time.perf_counter() - start
+        self.samples: list[float] = []  # seconds of every probe call
+
+    def __call__(self) -> float:
+        start = time.perf_counter()
+        jax.block_until_ready(self.fn(*self.args))
+        seconds = time.perf_counter() - start
+        self.samples.append(seconds)
+        return seconds
 
 
-def _compile_and_time(fn, args, repeats: int, donate: bool = False):
-    """(times, flops, compile_seconds) for jit(fn) at args; the first call is not timed."""
+def _compile_and_time(fn, args, repeats: int, probe: PeakProbe, donate: bool = False):
+    """jit(fn) at args: (times, probe times, flops, compile_seconds); the first call (compile or
+    persistent-cache load, plus one run) is not timed. ``donate``: fn is a step
+    (state0, state1, *rest) -> (state0, state1, ...), timed with its state threaded through."""
     start = time.perf_counter()
-    jitted = jax.jit(fn, donate_argnums=(0, 1) if donate else ())
-    compiled = jitted.lower(*args).compile()
+    compiled = jax.jit(fn, donate_argnums=(0, 1) if donate else ()).lower(*args).compile()
     out = jax.block_until_ready(compiled(*args))
     compile_seconds = time.perf_counter() - start
     flops = _flops(compiled)
-    if donate:  # thread the state through (the donated buffers are gone)
-        times = []
-        state = out[:2]
-        for _ in range(repeats):
-            t0 = time.perf_counter()
+    times, probes = [], []
+    state = out[:2] if donate else None
+    for _ in range(repeats):
+        probes.append(probe())
+        t0 = time.perf_counter()
+        if donate:
             state = jax.block_until_ready(compiled(*state, *args[2:]))[:2]
-            times.append(time.perf_counter() - t0)
-    else:
-        times = _time_calls(compiled, args, repeats)
-    return times, flops, compile_seconds
+        else:
+            jax.block_until_ready(compiled(*args))
+        times.append(time.perf_counter() - t0)
+    return times, probes, flops, compile_seconds
 
 
-def bench_matmul(n: int, repeats: int) -> dict:
-    a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
-    b = jax.random.normal(jax.random.PRNGKey(1), (n, n), jnp.float32)
-    times, flops, compile_seconds = _compile_and_time(jnp.matmul, (a, b), repeats)
-    flops = 2.0 * n ** 3
+def bench_matmul(probe: PeakProbe, repeats: int) -> dict:
+    times = [probe() for _ in range(repeats)]
     med = statistics.median(times)
-    return dict(method=f"matmul_{n}", kind="matmul", model=None, params=None, batch=None,
-                ms=med * 1e3, best_ms=min(times) * 1e3, gflop=flops / 1e9,
-                gflops=flops / med / 1e9, best_gflops=flops / min(times) / 1e9,
-                percent_of_peak=None, compile_seconds=compile_seconds)
+    return dict(method=f"matmul_{probe.n}", kind="matmul", model=None, params=None, batch=None,
+                ms=med * 1e3, best_ms=min(times) * 1e3, gflop=probe.flops / 1e9,
+                gflops=probe.flops / med / 1e9, best_gflops=probe.flops / min(times) / 1e9,
+                percent_of_peak=None, compile_seconds=probe.compile_seconds)
 
 
 def make_inputs(cfg: DenoiserConfig, batch: int, size: int, num_tokens: int, seed: int):
@@ -162,26 +182,33 @@ def make_train_step(model: Denoiser, optimizer, num_train_steps: int = 100):
     return step
 
 
-def _row(method, kind, model_name, n_params, batch, times, flops, compile_seconds, peak):
+def _row(method, kind, model_name, n_params, batch, times, probes, flops, compile_seconds,
+         probe: PeakProbe):
+    """A result row; percent_of_peak is the median over (call, adjacent matmul) pairs."""
     med = statistics.median(times)
     gflops = flops / med / 1e9 if flops else None
+    pct = (statistics.median(100.0 * (flops / t) / (probe.flops / p) for t, p in zip(times, probes))
+           if flops else None)
     return dict(method=method, kind=kind, model=model_name, params=n_params, batch=batch,
                 ms=med * 1e3, best_ms=min(times) * 1e3,
                 gflop=flops / 1e9 if flops else None, gflops=gflops,
                 best_gflops=flops / min(times) / 1e9 if flops else None,
-                percent_of_peak=100.0 * gflops / peak if gflops and peak else None,
+                percent_of_peak=pct,
+                adjacent_matmul_gflops=probe.flops / statistics.median(probes) / 1e9,
                 compile_seconds=compile_seconds)
 
 
-def bench_model(name: str, cfg: DenoiserConfig, args, peak: float, log) -> tuple[list, dict]:
+def bench_model(name: str, cfg: DenoiserConfig, args, probe: PeakProbe, log) -> tuple[list, dict]:
     model = Denoiser(cfg)
     variables = init_params(model, jax.random.PRNGKey(args.seed), args.size, args.size)
     params = variables["params"]
     n_params = count_params(params)
     x, t, tokens = make_inputs(cfg, args.batch, args.size, args.tokens, args.seed)
     rows = []
-    times, flops, cs = _compile_and_time(model.apply, (variables, x, t, tokens), args.repeats)
-    fwd = _row(f"{name}_forward", "forward", name, n_params, args.batch, times, flops, cs, peak)
+    times, probes, flops, cs = _compile_and_time(model.apply, (variables, x, t, tokens),
+                                                 args.repeats, probe)
+    fwd = _row(f"{name}_forward", "forward", name, n_params, args.batch, times, probes, flops,
+               cs, probe)
     fwd["ms_per_sample"] = fwd["ms"] / args.batch
     rows.append(fwd)
     log(f"{name}: {n_params / 1e6:.2f}M params, forward {fwd['ms']:.1f} ms")
@@ -191,10 +218,10 @@ def bench_model(name: str, cfg: DenoiserConfig, args, peak: float, log) -> tuple
         step = make_train_step(model, optimizer)
         targs = (jax.tree_util.tree_map(jnp.copy, params), opt_state, x, tokens,
                  jax.random.PRNGKey(args.seed))
-        times, flops, cs = _compile_and_time(step, targs, max(2, args.repeats // 2 + 1),
-                                             donate=True)
-        tr = _row(f"{name}_train_step", "train_step", name, n_params, args.batch, times, flops,
-                  cs, peak)
+        times, probes, flops, cs = _compile_and_time(
+            step, targs, max(2, args.repeats // 2 + 1), probe, donate=True)
+        tr = _row(f"{name}_train_step", "train_step", name, n_params, args.batch, times, probes,
+                  flops, cs, probe)
         tr["train_over_forward"] = tr["ms"] / fwd["ms"]
         rows.append(tr)
         log(f"{name}: train step {tr['ms']:.1f} ms")
@@ -202,7 +229,7 @@ def bench_model(name: str, cfg: DenoiserConfig, args, peak: float, log) -> tuple
                       forward_ms=fwd["ms"], forward_gflop=fwd["gflop"], params=n_params)
 
 
-def bench_sampler(name: str, ctx: dict, steps_list, args, peak: float, log) -> list:
+def bench_sampler(name: str, ctx: dict, steps_list, args, probe: PeakProbe, log) -> list:
     """One jitted ``sample`` call per step count. Its FLOPs are the denoiser's (calls x forward
     FLOPs): XLA's cost analysis counts a loop body once."""
     from diffplan.sampler import denoiser_calls, sample
@@ -219,11 +246,11 @@ def bench_sampler(name: str, ctx: dict, steps_list, args, peak: float, log) -> l
             return sample(fn, schedule, key, x_known, known_mask, num_steps=k)
 
         sargs = (variables, jax.random.PRNGKey(args.seed), x, tokens)
-        times, _, cs = _compile_and_time(plan, sargs, args.sampler_repeats)
+        times, probes, _, cs = _compile_and_time(plan, sargs, args.sampler_repeats, probe)
         calls = denoiser_calls(k)
         flops = calls * ctx["forward_gflop"] * 1e9 if ctx["forward_gflop"] else None
         row = _row(f"{name}_sample_{k}", "sampler", name, ctx["params"], args.batch, times,
-                   flops, cs, peak)
+                   probes, flops, cs, probe)
         row.update(num_steps=k, denoiser_calls=calls, ms_per_plan=row["ms"] / args.batch,
                    ms_per_call=row["ms"] / calls,
                    time_over_forwards=row["ms"] / (calls * ctx["forward_ms"]))
@@ -320,41 +347,39 @@ def main(argv=None) -> int:
     def log(msg):
         print(msg, file=sys.stderr, flush=True)
 
-    mm = bench_matmul(args.matmul_n, args.repeats)
+    probe = PeakProbe(args.matmul_n)
+    mm = bench_matmul(probe, args.repeats)
     log(f"matmul {args.matmul_n}: {mm['gflops']:.1f} GFLOP/s")
-    peak = mm["gflops"]
     rows = [mm]
     ctxs = {}
     names = list(args.configs)
     if not args.no_sampler and args.sampler_config not in names:
         names.append(args.sampler_config)
     for name in names:
-        model_rows, ctx = bench_model(name, CONFIGS[name], args, peak, log)
+        model_rows, ctx = bench_model(name, CONFIGS[name], args, probe, log)
         if name in args.configs:
             rows += model_rows
         ctxs[name] = ctx
     if not args.no_sampler:
         rows += bench_sampler(args.sampler_config, ctxs[args.sampler_config],
-                              args.sampler_steps, args, peak, log)
-    # The machine may be shared: re-measure the peak and use the better of the two.
-    mm2 = bench_matmul(args.matmul_n, args.repeats)
-    mm2["method"] += "_end"
-    rows.insert(1, mm2)
-    peak = max(mm["gflops"], mm2["gflops"])
-    for r in rows:
-        if r["kind"] != "matmul" and r["gflops"]:
-            r["percent_of_peak"] = 100.0 * r["gflops"] / peak
+                              args.sampler_steps, args, probe, log)
+    # The best matmul rate seen in the whole run (every probe call counts).
+    peak = probe.flops / min(probe.samples) / 1e9
+    mm["best_gflops"] = peak
 
     device = jax.devices()[0]
     print(f"jax {jax.__version__} on {len(jax.devices())} x {device.platform} "
           f"({getattr(device, 'device_kind', '')}); batch {args.batch}, "
-          f"{args.size}x{args.size} maps, L={args.tokens}; matmul peak {peak:.1f} GFLOP/s")
+          f"{args.size}x{args.size} maps, L={args.tokens}; matmul {args.matmul_n}: median "
+          f"{mm['gflops']:.1f}, best {peak:.1f} GFLOP/s. % peak: vs the matmul run just before "
+          f"each call (median over calls).")
     print(format_table(rows))
     for r in rows:
         if r["kind"] == "forward" and r["percent_of_peak"] is not None:
             verdict = "meets" if r["percent_of_peak"] >= TARGET_PERCENT_OF_PEAK else "misses"
             print(f"{r['method']}: {r['percent_of_peak']:.1f}% of the matmul peak ({verdict} the "
-                  f"{TARGET_PERCENT_OF_PEAK:.0f}% target)")
+                  f"{TARGET_PERCENT_OF_PEAK:.0f}% target; {r['gflops']:.1f} GFLOP/s, "
+                  f"{100 * r['gflops'] / peak:.1f}% of the run's best matmul)")
     result = dict(
         experiment="bench_unet", episodes=args.batch, seed=args.seed, rows=rows,
         matmul_peak_gflops=peak, target_percent_of_peak=TARGET_PERCENT_OF_PEAK,

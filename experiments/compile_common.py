@@ -29,6 +29,7 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHECKPOINT_ROOT = os.path.join(REPO_ROOT, "checkpoints")
 TRAIN_STREAM = 0x7EA1
 DEFAULT_EVAL_SEED = 1000
+ROLLOUT_STREAM = 0x9A11
 
 
 def enable_compilation_cache():
@@ -40,6 +41,20 @@ def enable_compilation_cache():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+MODEL_SIZES = {
+    # For tests and smoke runs: compiles and trains in seconds, learns little.
+    "tiny": dict(embed_dim=8, widths=(8, 16), num_res_blocks=1, attn_levels=(), cross_attn_levels=(1,),
+                 text_dim=16, text_layers=1, text_heads=2, groups=4, head_dim=8),
+    # The shipped grid-world denoiser, sized for a 2-core CPU.
+    # Widths (16, 32, 64): ~50 MFLOP per sample. experiments/bench_unet.py measured a
+    # 2.8M-parameter (32, 64, 128) UNet at ~1.6x the forward time and ~1.8x the train-step time
+    # of this size on this CPU; on-the-fly evaluation is dominated by denoiser calls.
+    "default": dict(embed_dim=32, widths=(16, 32, 64), num_res_blocks=1, attn_levels=(2,),
+                    cross_attn_levels=(0, 1, 2), text_dim=64, text_layers=2, text_heads=4,
+                    groups=8, head_dim=16),
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class ExperimentSpec:
     """Everything a setting's experiment fixes: world, model, training and planning defaults."""
@@ -47,7 +62,7 @@ class ExperimentSpec:
     setting: str
     grid_repr: str = "embed"
     goal_channel: bool = True
-    train_steps: int = 6000
+    train_steps: int = 4000
     batch_size: int = 64
     lr: float = 1e-3
     warmup_steps: int = 200
@@ -69,16 +84,16 @@ class ExperimentSpec:
         from envs.gridworld.task import GridTask
         return GridTask(self.grid_config())
 
-    def model_config(self):
+    def model_config(self, size: str = "default"):
         from diffplan.denoiser import DenoiserConfig
         from envs.gridworld import grammar
         from envs.gridworld.task import NUM_COND_CHANNELS, NUM_GEN_CHANNELS
+        if size not in MODEL_SIZES:
+            raise ValueError(f"unknown model size {size!r}; expected one of {sorted(MODEL_SIZES)}")
         return DenoiserConfig(
             vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS,
             num_cond_channels=NUM_COND_CHANNELS, num_gen_channels=NUM_GEN_CHANNELS,
-            grid_repr=self.grid_repr, embed_dim=32, widths=(32, 64, 128), num_res_blocks=1,
-            attn_levels=(2,), cross_attn_levels=(1, 2), text_dim=64, text_layers=2,
-            text_heads=4, groups=8, head_dim=32)
+            grid_repr=self.grid_repr, **MODEL_SIZES[size])
 
     def train_config(self, seed: int = 0, steps: int | None = None):
         from diffplan.train import TrainConfig
@@ -94,8 +109,17 @@ class ExperimentSpec:
                              warm_start_step=self.warm_start_step, **overrides)
 
     def default_checkpoint(self) -> str:
-        return os.path.join(CHECKPOINT_ROOT, self.setting)
+        return os.path.join(CHECKPOINT_ROOT, TRAINING_NAME)
 
+    def default_train_dir(self) -> str:
+        return os.path.join(REPO_ROOT, "runs", TRAINING_NAME)
+
+
+TRAINING_NAME = "compile_gridworld"
+"""One denoiser serves the three settings: it is trained on a fixed mixture of them (each batch
+holds TRAINING_MIXTURE examples of each setting), which costs one training instead of three; the
+shipped checkpoint is checkpoints/compile_gridworld and `--train` of any setting trains it."""
+TRAINING_MIXTURE = (("p_mo2g", 36), ("mo1g", 18), ("1o1g", 10))
 
 SPECS = {
     "1o1g": ExperimentSpec("1o1g", modes=("one_shot", "on_the_fly", "warm_start")),
@@ -105,6 +129,36 @@ SPECS = {
 
 
 # ----------------------------------------------------------------------------------- data
+
+def training_episode_keys(key, batch_size: int):
+    """The episode keys of one training batch: (batch_size,) keys from the TRAIN_STREAM fold
+    of the step's key (never of the form fold_in(PRNGKey(seed), i) used for evaluation)."""
+    return jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
+
+
+def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True):
+    """batch_fn(key, batch_size) -> Batch with the settings' examples in fixed proportions:
+    mixture ((setting, count), ...) gives count examples of each setting per sum(counts) (the
+    batch size must be a multiple of sum(counts)); example j of setting s comes from
+    training_episode_keys(fold_in(key, index of s), ...)."""
+    from diffplan.train import Batch
+    from envs.gridworld.config import make_config
+
+    total = sum(count for _, count in mixture)
+    fns = [(make_batch_fn(make_config(setting), goal_channel), count)
+           for setting, count in mixture]
+
+    def batch_fn(key, batch_size):
+        if batch_size % total:
+            raise ValueError(f"batch size {batch_size} is not a multiple of the mixture's "
+                             f"{total} examples {mixture}")
+        scale = batch_size // total
+        parts = [fn(jax.random.fold_in(key, i), count * scale)
+                 for i, (fn, count) in enumerate(fns)]
+        return Batch(*[jnp.concatenate(xs) for xs in zip(*parts)])
+
+    return batch_fn
+
 
 def make_batch_fn(grid_config, goal_channel: bool = True, goal_loss_seen_only: bool = False):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of grid-world training examples.
@@ -116,7 +170,7 @@ def make_batch_fn(grid_config, goal_channel: bool = True, goal_loss_seen_only: b
     from envs.gridworld.task import training_example
 
     def batch_fn(key, batch_size):
-        keys = jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
+        keys = training_episode_keys(key, batch_size)
         x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None))(keys, grid_config)
         mask = jnp.ones(x0.shape[:-1] + (2,), jnp.float32)
         goal_mask = seen.astype(jnp.float32) if goal_loss_seen_only else mask[..., 1]
@@ -144,20 +198,21 @@ def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
 # ------------------------------------------------------------------------------ training
 
 def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: int | None = None,
-                  progress: bool = True):
+                  progress: bool = True, model_size: str = "default"):
     """Trains the setting's denoiser into out_dir (resuming if it holds a checkpoint).
     Returns (ema params, model config, seconds)."""
     from diffplan.denoiser import Denoiser
     from diffplan.train import train
 
-    model_config = spec.model_config()
+    model_config = spec.model_config(model_size)
     model = Denoiser(model_config)
-    batch_fn = make_batch_fn(spec.grid_config(), goal_channel=spec.goal_channel)
+    batch_fn = make_mixture_batch_fn(goal_channel=spec.goal_channel)
     start = time.time()
     result = train(model, model_config, spec.train_config(seed, steps), batch_fn, out_dir,
                    progress=progress,
-                   extra_metadata={"setting": spec.setting, "goal_channel": spec.goal_channel,
-                                   "command_seed": seed})
+                   extra_metadata={"mixture": [list(m) for m in TRAINING_MIXTURE],
+                                   "goal_channel": spec.goal_channel,
+                                   "model_size": model_size})
     return result.ema_params, model_config, time.time() - start
 
 
@@ -196,26 +251,40 @@ def make_rollout_fn(task, model_config, planner_config):
 
 def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, batch_size,
                   progress=True, record_plans=False):
-    """Runs one planning mode on the n episodes in chunks; returns (Rollout as numpy, seconds)."""
+    """Runs one planning mode on the n episodes in chunks; returns (Rollout as numpy, seconds).
+
+    A chunk's loop runs until its slowest episode ends, so episodes are processed in order of
+    expert length (chunks of similar episodes waste fewer denoiser calls on finished ones);
+    results are returned in the original order. Episode i always uses the key
+    fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), so nothing depends on the chunking.
+    """
     from tqdm import tqdm
 
     planner_config = spec.planner_config(mode, record_plans=record_plans)
     run = make_rollout_fn(task, model_config, planner_config)
-    root = jax.random.fold_in(jax.random.PRNGKey(seed), 0x9A11)
+    root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
+    order = np.argsort(np.asarray(episodes.expert_length), kind="stable")
     outs = []
     start = time.time()
     bar = tqdm(total=n, desc=f"{spec.setting} {mode}", unit="ep", disable=not progress,
                file=sys.stderr, leave=False)
     for lo in range(0, n, batch_size):
-        hi = min(n, lo + batch_size)
-        chunk = jax.tree.map(lambda x: x[lo:hi], episodes)
-        keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(lo, hi))
-        outs.append(jax.device_get(run(params, keys, chunk)))
-        bar.update(hi - lo)
+        idx = order[lo:lo + batch_size]
+        chunk = jax.tree.map(lambda x: x[idx], episodes)
+        keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.asarray(idx))
+        if len(idx) < batch_size and lo > 0:
+            # Pad the last chunk to the compiled batch size (padding results are dropped).
+            pad = batch_size - len(idx)
+            chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
+            keys = jnp.concatenate([keys, keys[:pad]])
+        out = jax.device_get(run(params, keys, chunk))
+        outs.append(jax.tree.map(lambda x: x[:len(idx)], out))
+        bar.update(len(idx))
     bar.close()
     seconds = time.time() - start
     merged = jax.tree.map(lambda *xs: np.concatenate(xs), *outs)
-    return merged, seconds
+    inverse = np.argsort(order)
+    return jax.tree.map(lambda x: x[inverse], merged), seconds
 
 
 def metrics_row(method, rollout, episodes, seconds, has_reference):
@@ -306,15 +375,18 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                    help="write the executed trajectories of the main row and the episodes")
     p.add_argument("--checkpoint", metavar="DIR",
                    help=f"evaluate this checkpoint (default: the shipped "
-                        f"checkpoints/{spec.setting}, or the --train output)")
+                        f"checkpoints/{TRAINING_NAME}, or the --train output)")
     p.add_argument("--train", action="store_true",
                    help="train from scratch (resumes if --train-dir holds a checkpoint), then "
                         "evaluate the result")
     p.add_argument("--train-dir", metavar="DIR", default=None,
-                   help=f"training output directory (default runs/{spec.name})")
+                   help=f"training output directory (default runs/{TRAINING_NAME}; one "
+                        "denoiser serves all three settings)")
     p.add_argument("--train-steps", type=int, default=spec.train_steps,
                    help=f"optimisation steps of --train (default {spec.train_steps})")
     p.add_argument("--train-seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default="default",
+                   help="denoiser size for --train ('tiny' is for smoke tests; default 'default')")
     p.add_argument("--modes", default=",".join(spec.modes),
                    help=f"comma-separated planning modes to evaluate (default "
                         f"{','.join(spec.modes)})")
@@ -364,9 +436,10 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
 
     train_seconds = None
     if args.train:
-        train_dir = args.train_dir or os.path.join(REPO_ROOT, "runs", spec.name)
+        train_dir = args.train_dir or spec.default_train_dir()
         params, model_config, train_seconds = train_setting(
-            spec, train_dir, seed=args.train_seed, steps=args.train_steps, progress=progress)
+            spec, train_dir, seed=args.train_seed, steps=args.train_steps, progress=progress,
+            model_size=args.model_size)
         checkpoint = train_dir
         metadata = {"trained_now": True}
     else:

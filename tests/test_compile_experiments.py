@@ -1,0 +1,131 @@
+"""End-to-end runs of the CompILE experiments on a tiny configuration (train a few steps,
+evaluate a few episodes), the JSON / trajectories contracts, and the seed discipline."""
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from diffplan import metrics
+from experiments import compile_common as cc
+
+EXPECTED_ROW_FIELDS = {"method", "SR", "GD", "path_precision", "path_recall", "path_f1",
+                       "denoiser_calls_per_episode", "seconds"}
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """`compile_p_mo2g --train` with a tiny model: 4 steps, 6 episodes, every mode."""
+    out = tmp_path_factory.mktemp("p_mo2g")
+    argv = ["--train", "--train-steps", "4", "--model-size", "tiny", "--train-dir",
+            str(out / "train"), "--episodes", "6", "--batch-size", "4", "--num-steps", "2",
+            "--warm-start-step", "1", "--json", str(out / "r.json"), "--trajectories",
+            str(out / "t.npz"), "--no-progress"]
+    result = cc.main("p_mo2g", argv)
+    return out, result
+
+
+def test_json_contract(tiny_run):
+    out, result = tiny_run
+    with open(out / "r.json") as f:
+        data = json.load(f)
+    assert data == json.loads(json.dumps(result))
+    assert data["experiment"] == "compile_p_mo2g"
+    assert data["episodes"] == 6 and data["seed"] == cc.DEFAULT_EVAL_SEED
+    methods = [row["method"] for row in data["rows"]]
+    assert methods == ["one-shot", "two-shot", "on-the-fly", "warm-start on-the-fly"]
+    assert data["trajectories_method"] == "on-the-fly"
+    for row in data["rows"]:
+        assert EXPECTED_ROW_FIELDS <= set(row), EXPECTED_ROW_FIELDS - set(row)
+        assert 0.0 <= row["SR"] <= 100.0
+        assert "SR_ordered" in row and row["SR_ordered"] <= row["SR"]
+    calls = {row["method"]: row["denoiser_calls_per_episode"] for row in data["rows"]}
+    assert calls["one-shot"] == 2.0
+    assert calls["warm-start on-the-fly"] <= calls["on-the-fly"]
+
+
+def test_trajectories_file_recomputes_the_main_row(tiny_run):
+    out, result = tiny_run
+    traj = np.load(out / "t.npz")
+    for key in ("grid", "agent", "target", "reference", "expert_path", "expert_length",
+                "visible0", "instruction", "object_names", "positions", "steps", "success"):
+        assert key in traj.files, key
+    assert traj["positions"].shape == (6, 101, 2) and traj["positions"].dtype == np.int32
+    assert traj["grid"].dtype == np.int8 and traj["grid"].shape == (6, 16, 16)
+    # Anyone can recompute the metrics of the main row from what the agent did.
+    recomputed = metrics.trajectory_metrics(traj["positions"], traj["steps"], traj["target"],
+                                            traj["expert_path"], traj["reference"])
+    row = next(r for r in result["rows"] if r["method"] == result["trajectories_method"])
+    for key in ("SR", "SR_ordered", "GD", "path_precision", "path_recall", "path_f1"):
+        assert recomputed[key] == pytest.approx(row[key]), key
+    # Executed moves are 4-connected, inside the grid, never into an obstacle.
+    pos = traj["positions"]
+    assert np.all(np.abs(np.diff(pos, axis=1)).sum(-1) <= 1)
+    n = np.arange(6)[:, None]
+    assert np.all(traj["grid"][n, pos[..., 0], pos[..., 1]] != -1)
+    np.testing.assert_array_equal(traj["success"], np.all(pos[np.arange(6), traj["steps"]] ==
+                                                          traj["target"], axis=-1))
+
+
+def test_other_settings_evaluate_a_checkpoint(tiny_run, tmp_path):
+    out, _ = tiny_run
+    for setting in ("mo1g", "1o1g"):
+        result = cc.main(setting, ["--checkpoint", str(out / "train"), "--episodes", "3",
+                                   "--batch-size", "3", "--num-steps", "2",
+                                   "--warm-start-step", "1", "--modes", "on_the_fly",
+                                   "--json", str(tmp_path / f"{setting}.json"), "--no-progress"])
+        assert result["experiment"] == f"compile_{setting}"
+        assert [r["method"] for r in result["rows"]] == ["on-the-fly"]
+        assert "SR_ordered" not in result["rows"][0]
+
+
+def test_missing_checkpoint_says_how_to_get_one(tmp_path, capsys):
+    with pytest.raises(SystemExit) as err:
+        cc.main("p_mo2g", ["--checkpoint", str(tmp_path / "nothing"), "--episodes", "2"])
+    assert err.value.code == 2
+    msg = capsys.readouterr().err.strip()
+    assert "--train" in msg and len(msg.splitlines()) == 1
+
+
+@pytest.mark.parametrize("argv", [["--episodes", "0"], ["--modes", "two_shot"],
+                                  ["--num-steps", "4", "--warm-start-step", "4"]])
+def test_bad_arguments_are_rejected(argv):
+    with pytest.raises(SystemExit) as err:
+        cc.main("p_mo2g", argv)
+    assert err.value.code == 2
+
+
+def test_evaluation_episodes_are_disjoint_from_training():
+    """Training draws its episodes from its own key stream: even with the same seed for both,
+    no evaluation episode is among the training episodes of the first steps."""
+    from diffplan.train import step_key
+    from envs.gridworld.episode import generate
+
+    grid_config = cc.SPECS["p_mo2g"].grid_config()
+    eval_eps = cc.eval_episodes(grid_config, 512, seed=0)
+    gen = jax.jit(jax.vmap(generate, in_axes=(0, None)), static_argnums=1)
+
+    def fingerprints(eps):
+        return {np.asarray(g).tobytes() + np.asarray(a).tobytes()
+                for g, a in zip(eps.grid, eps.agent)}
+
+    train_prints = set()
+    for step in range(4):
+        keys = cc.training_episode_keys(step_key(0, step), 128)
+        train_prints |= fingerprints(gen(keys, grid_config))
+    assert len(train_prints) == 512  # distinct episodes
+    assert not (train_prints & fingerprints(eval_eps))
+
+
+def test_same_seed_same_results(tiny_run, tmp_path):
+    out, _ = tiny_run
+    argv = ["--checkpoint", str(out / "train"), "--episodes", "4", "--batch-size", "4",
+            "--num-steps", "2", "--warm-start-step", "1", "--modes", "on_the_fly",
+            "--no-progress"]
+    a = cc.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "a.npz")])
+    b = cc.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "b.npz"),
+                                  "--batch-size", "3"])
+    np.testing.assert_array_equal(np.load(tmp_path / "a.npz")["positions"],
+                                  np.load(tmp_path / "b.npz")["positions"])
+    assert a["rows"][0]["SR"] == b["rows"][0]["SR"]
