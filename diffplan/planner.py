@@ -208,3 +208,151 @@ def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes
     return Rollout(final_state=states, positions=positions, steps=steps.astype(jnp.int32),
                    done=v_done(states), denoiser_calls=calls.astype(jnp.int32),
                    num_plans=num_plans.astype(jnp.int32), first_plan=first_plan, plans=plans)
+
+
+def _take(tree, idx):
+    return jax.tree.map(lambda x: x[idx], tree)
+
+
+def _put(tree, idx, values):
+    """tree[idx] = values for each leaf; out-of-range idx entries are dropped."""
+    return jax.tree.map(lambda x, v: x.at[idx].set(v, mode="drop"), tree, values)
+
+
+def rollout_stream(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes,
+                   config: PlannerConfig, num_slots: int, num_fresh: int | None = None
+                   ) -> Rollout:
+    """Like :func:`rollout` for the re-planning modes, but with a pool of ``num_slots`` episode
+    slots refilled as episodes end, so the work is the sum of the episodes' lengths instead of
+    (number of batches) x (longest episode of a batch): a single 100-move failure no longer
+    makes a whole batch plan for 100 moves.
+
+    Each episode sees exactly what it would see in :func:`rollout` (its own key, re-planning
+    before each of its moves with key fold_in(key, move)), so the results are the same.
+    Modes "on_the_fly" and "warm_start" only. In "warm_start", the first (full) plans of newly
+    started episodes are made for at most ``num_fresh`` slots per move (default num_slots // 8);
+    further free slots wait for the next move.
+
+    Args: as :func:`rollout`, with keys (N,) and episodes (N, ...) for any N.
+    Returns: a Rollout over the N episodes, in their order.
+    """
+    if config.mode not in ("on_the_fly", "warm_start"):
+        raise ValueError(f"rollout_stream supports on_the_fly and warm_start, not {config.mode}")
+    if config.record_plans:
+        raise ValueError("record_plans is not supported by rollout_stream; use rollout")
+    n = keys.shape[0]
+    slots = int(num_slots)
+    fresh_cap = max(1, slots // 8) if num_fresh is None else int(num_fresh)
+    if slots < 1 or fresh_cap < 1:
+        raise ValueError(f"num_slots and num_fresh must be >= 1, got {slots}, {fresh_cap}")
+    warm = config.mode == "warm_start"
+    fresh_cap = min(fresh_cap, slots) if warm else slots
+    plan_fn = make_planner(task, apply_fn, params, schedule, config)
+    t_max = task.max_steps
+    v_done = jax.vmap(task.done)
+    v_reset = jax.vmap(task.reset)
+    tokens_all = jax.vmap(task.tokens)(episodes)
+
+    # Per-slot state (placeholders for empty slots: episode 0, never recorded).
+    slot_ep = jnp.full((slots,), n, jnp.int32)  # n = empty
+    states = v_reset(_take(episodes, jnp.zeros((slots,), jnp.int32)))
+    probe_plan = jax.eval_shape(lambda: plan_fn(keys[:1], _take(states, jnp.arange(1)),
+                                                tokens_all[:1]))
+    plan_shape = probe_plan.shape[1:]
+    plans = jnp.zeros((slots,) + plan_shape, jnp.float32)
+    slot_t = jnp.zeros((slots,), jnp.int32)
+    slot_calls = jnp.zeros((slots,), jnp.int32)
+    slot_plans = jnp.zeros((slots,), jnp.int32)
+
+    final_states = v_reset(episodes)
+    start = jax.vmap(task.position)(final_states)
+    positions = jnp.broadcast_to(start[:, None, :], (n, t_max + 1, 2)).astype(jnp.int32)
+    out = dict(steps=jnp.zeros((n,), jnp.int32), calls=jnp.zeros((n,), jnp.int32),
+               num_plans=jnp.zeros((n,), jnp.int32),
+               first_plan=jnp.zeros((n,) + plan_shape, jnp.float32))
+
+    def slot_keys(slot_ep, slot_t):
+        ep_keys = keys[jnp.clip(slot_ep, 0, n - 1)]
+        return jax.vmap(jax.random.fold_in)(ep_keys, slot_t)
+
+    def body(carry):
+        next_ep, slot_ep, states, plans, slot_t, slot_calls, slot_plans, final_states, \
+            positions, out = carry
+        occupied = slot_ep < n
+        # 1. Retire finished episodes.
+        finished = occupied & v_done(states)
+        write = jnp.where(finished, slot_ep, n)
+        final_states = _put(final_states, write, states)
+        out = dict(out, steps=out["steps"].at[write].set(slot_t, mode="drop"),
+                   calls=out["calls"].at[write].set(slot_calls, mode="drop"),
+                   num_plans=out["num_plans"].at[write].set(slot_plans, mode="drop"))
+        slot_ep = jnp.where(finished, n, slot_ep)
+        free = slot_ep >= n
+        # 2. Refill free slots, in episode order, at most fresh_cap of them.
+        rank = jnp.cumsum(free) - 1
+        new_ep = next_ep + rank
+        load = free & (rank < fresh_cap) & (new_ep < n)
+        slot_ep = jnp.where(load, new_ep, slot_ep)
+        next_ep = next_ep + jnp.sum(load).astype(jnp.int32)
+        loaded = v_reset(_take(episodes, jnp.clip(new_ep, 0, n - 1)))
+        states = jax.tree.map(lambda old, new: jnp.where(
+            load.reshape((-1,) + (1,) * (old.ndim - 1)), new, old), states, loaded)
+        slot_t = jnp.where(load, 0, slot_t)
+        slot_calls = jnp.where(load, 0, slot_calls)
+        slot_plans = jnp.where(load, 0, slot_plans)
+        tokens = tokens_all[jnp.clip(slot_ep, 0, n - 1)]
+        active = (slot_ep < n) & ~v_done(states)
+        k = slot_keys(slot_ep, slot_t)
+        # 3. Plan.
+        if warm:
+            # Full first plans for the newly loaded slots (a sub-batch of fresh_cap slots) ...
+            order = jnp.argsort(~load, stable=True)[:fresh_cap]
+            sub_load = load[order]
+            full = jax.lax.cond(
+                jnp.any(load),
+                lambda: plan_fn(k[order], _take(states, order), tokens[order]),
+                lambda: plans[order])
+            # ... and warm re-plans for the others.
+            rewarm = active & ~load
+            warm_plans = jax.lax.cond(
+                jnp.any(rewarm), lambda: plan_fn(k, states, tokens, plans, True), lambda: plans)
+            plans = jnp.where(rewarm[:, None, None, None], warm_plans, plans)
+            plans = plans.at[jnp.where(sub_load, order, slots)].set(full, mode="drop")
+            calls = jnp.where(load & active, config.full_plan_calls,
+                              jnp.where(rewarm, config.warm_plan_calls, 0))
+        else:
+            new_plans = jax.lax.cond(jnp.any(active), lambda: plan_fn(k, states, tokens),
+                                     lambda: plans)
+            plans = jnp.where(active[:, None, None, None], new_plans, plans)
+            calls = jnp.where(active, config.full_plan_calls, 0)
+        slot_calls = slot_calls + calls
+        slot_plans = slot_plans + (calls > 0)
+        out = dict(out, first_plan=out["first_plan"].at[jnp.where(load, slot_ep, n)].set(
+            plans, mode="drop"))
+        # 4. Act.
+        actions = jax.vmap(task.psi)(states, plans)
+        stepped = jax.vmap(task.step)(states, actions)
+        states = jax.tree.map(lambda old, new: jnp.where(
+            active.reshape((-1,) + (1,) * (old.ndim - 1)), new, old), states, stepped)
+        slot_t = slot_t + active
+        pos = jax.vmap(task.position)(states)
+        row = jnp.where(active, slot_ep, n)
+        positions = positions.at[row, slot_t].set(pos, mode="drop")
+        return (next_ep, slot_ep, states, plans, slot_t, slot_calls, slot_plans, final_states,
+                positions, out)
+
+    def cond(carry):
+        next_ep, slot_ep = carry[0], carry[1]
+        return (next_ep < n) | jnp.any(slot_ep < n)
+
+    carry = (jnp.int32(0), slot_ep, states, plans, slot_t, slot_calls, slot_plans,
+             final_states, positions, out)
+    carry = jax.lax.while_loop(cond, body, carry)
+    _, _, _, _, _, _, _, final_states, positions, out = carry
+    steps = out["steps"]
+    final = jax.vmap(task.position)(final_states)
+    idx = jnp.arange(t_max + 1)[None, :]
+    positions = jnp.where((idx > steps[:, None])[..., None], final[:, None, :], positions)
+    return Rollout(final_state=final_states, positions=positions, steps=steps,
+                   done=v_done(final_states), denoiser_calls=out["calls"],
+                   num_plans=out["num_plans"], first_plan=out["first_plan"], plans=None)

@@ -36,7 +36,7 @@ import numpy as np
 
 from envs.gridworld import env, episode
 from envs.gridworld.config import SETTINGS, make_config
-from envs.gridworld.export import enable_compilation_cache
+from diffplan.jax_cache import enable_compilation_cache
 
 TARGET_ENV_STEPS_PER_S = 2_000_000
 TARGET_ENV_BATCH = 4096

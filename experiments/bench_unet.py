@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from diffplan.jax_cache import enable_compilation_cache
 from diffplan.denoiser import Denoiser, DenoiserConfig, count_params, init_params, make_denoise_fn
 
 TARGET_PERCENT_OF_PEAK = 40.0
@@ -57,20 +58,6 @@ CONFIGS = {
     "large": DenoiserConfig(widths=(32, 64, 128), num_res_blocks=2, embed_dim=64,
                             mid_block=True),
 }
-
-
-def enable_compilation_cache() -> str:
-    """JAX's persistent compilation cache, in the project's shared directory."""
-    try:
-        from envs.gridworld.export import enable_compilation_cache as enable
-        return enable()
-    except ImportError:  # the environment package is not there: same convention, locally
-        import os
-        path = os.path.expanduser(os.environ.get("DIFFPLAN_JAX_CACHE", "~/.cache/diffplan-jax"))
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-        return path
 
 
 def _flops(compiled) -> float | None:

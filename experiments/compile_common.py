@@ -25,20 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffplan.jax_cache import enable_compilation_cache
+
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHECKPOINT_ROOT = os.path.join(REPO_ROOT, "checkpoints")
 TRAIN_STREAM = 0x7EA1
 DEFAULT_EVAL_SEED = 1000
 ROLLOUT_STREAM = 0x9A11
-
-
-def enable_compilation_cache():
-    """JAX's persistent compilation cache (re-runs skip most compile time)."""
-    cache = os.environ.get("DIFFPLAN_JAX_CACHE",
-                           os.path.join(os.path.expanduser("~"), ".cache", "diffplan-jax"))
-    os.makedirs(cache, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 MODEL_SIZES = {
@@ -82,7 +75,7 @@ class ExperimentSpec:
 
     def task(self):
         from envs.gridworld.task import GridTask
-        return GridTask(self.grid_config())
+        return GridTask(self.grid_config(), use_goal_channel=self.goal_channel)
 
     def model_config(self, size: str = "default"):
         from diffplan.denoiser import DenoiserConfig
@@ -108,11 +101,18 @@ class ExperimentSpec:
         return PlannerConfig(mode=mode, num_steps=self.num_steps,
                              warm_start_step=self.warm_start_step, **overrides)
 
+    @property
+    def training_name(self) -> str:
+        """The denoiser's name: the main one, or an ablation's (other grid repr / no g)."""
+        suffix = ("" if self.grid_repr == "embed" else f"_{self.grid_repr}") + \
+            ("" if self.goal_channel else "_no_goal")
+        return TRAINING_NAME + suffix
+
     def default_checkpoint(self) -> str:
-        return os.path.join(CHECKPOINT_ROOT, TRAINING_NAME)
+        return os.path.join(CHECKPOINT_ROOT, self.training_name)
 
     def default_train_dir(self) -> str:
-        return os.path.join(REPO_ROOT, "runs", TRAINING_NAME)
+        return os.path.join(REPO_ROOT, "runs", self.training_name)
 
 
 TRAINING_NAME = "compile_gridworld"
@@ -207,9 +207,12 @@ def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: i
     model_config = spec.model_config(model_size)
     model = Denoiser(model_config)
     batch_fn = make_mixture_batch_fn(goal_channel=spec.goal_channel)
+    # Input shapes of one example (every setting's examples have the same shapes).
+    init_batch = jax.eval_shape(lambda k: make_batch_fn(spec.grid_config())(k, 1),
+                                jax.random.PRNGKey(0))
     start = time.time()
     result = train(model, model_config, spec.train_config(seed, steps), batch_fn, out_dir,
-                   progress=progress,
+                   init_batch=init_batch, progress=progress,
                    extra_metadata={"mixture": [list(m) for m in TRAINING_MIXTURE],
                                    "goal_channel": spec.goal_channel,
                                    "model_size": model_size})
@@ -230,10 +233,14 @@ def load_model(spec: ExperimentSpec, checkpoint_dir: str):
 
 # ---------------------------------------------------------------------------- evaluation
 
-def make_rollout_fn(task, model_config, planner_config):
-    """jitted (params, keys (B,), episodes) -> Rollout for one planning mode."""
+STREAM_MODES = ("on_the_fly", "warm_start")
+
+
+def make_rollout_fn(task, model_config, planner_config, num_slots=None):
+    """jitted (params, keys (B,), episodes) -> Rollout for one planning mode; with num_slots,
+    the slot-refilling rollout_stream (re-planning modes)."""
     from diffplan.denoiser import Denoiser
-    from diffplan.planner import rollout
+    from diffplan.planner import rollout, rollout_stream
     from diffplan.schedule import cosine_schedule
 
     model = Denoiser(model_config)
@@ -244,6 +251,9 @@ def make_rollout_fn(task, model_config, planner_config):
 
     @jax.jit
     def run(params, keys, episodes):
+        if num_slots:
+            return rollout_stream(task, apply_fn, params, schedule, keys, episodes,
+                                  planner_config, num_slots)
         return rollout(task, apply_fn, params, schedule, keys, episodes, planner_config)
 
     return run
@@ -251,30 +261,35 @@ def make_rollout_fn(task, model_config, planner_config):
 
 def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, batch_size,
                   progress=True, record_plans=False):
-    """Runs one planning mode on the n episodes in chunks; returns (Rollout as numpy, seconds).
+    """Runs one planning mode on the n episodes; returns (Rollout as numpy, seconds).
 
-    A chunk's loop runs until its slowest episode ends, so episodes are processed in order of
-    expert length (chunks of similar episodes waste fewer denoiser calls on finished ones);
-    results are returned in the original order. Episode i always uses the key
-    fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), so nothing depends on the chunking.
+    Re-planning modes use rollout_stream with batch_size slots over calls of up to
+    2 x batch_size episodes (a slot starts the next episode as soon as its episode ends); the
+    other modes run batches of batch_size episodes, processed in order of expert length (a
+    batch's loop runs until its slowest episode ends). Episode i always uses the key
+    fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), so nothing depends on the batching.
     """
     from tqdm import tqdm
 
     planner_config = spec.planner_config(mode, record_plans=record_plans)
-    run = make_rollout_fn(task, model_config, planner_config)
+    stream = mode in STREAM_MODES and not record_plans
+    per_call = min(n, 2 * batch_size) if stream else batch_size
+    run = make_rollout_fn(task, model_config, planner_config,
+                          num_slots=min(batch_size, per_call) if stream else None)
     root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
-    order = np.argsort(np.asarray(episodes.expert_length), kind="stable")
+    order = (np.arange(n) if stream
+             else np.argsort(np.asarray(episodes.expert_length), kind="stable"))
     outs = []
     start = time.time()
     bar = tqdm(total=n, desc=f"{spec.setting} {mode}", unit="ep", disable=not progress,
                file=sys.stderr, leave=False)
-    for lo in range(0, n, batch_size):
-        idx = order[lo:lo + batch_size]
+    for lo in range(0, n, per_call):
+        idx = order[lo:lo + per_call]
         chunk = jax.tree.map(lambda x: x[idx], episodes)
         keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.asarray(idx))
-        if len(idx) < batch_size and lo > 0:
-            # Pad the last chunk to the compiled batch size (padding results are dropped).
-            pad = batch_size - len(idx)
+        if len(idx) < per_call and lo > 0:
+            # Pad the last call to the compiled size (padding results are dropped).
+            pad = per_call - len(idx)
             chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
             keys = jnp.concatenate([keys, keys[:pad]])
         out = jax.device_get(run(params, keys, chunk))

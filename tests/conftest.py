@@ -19,14 +19,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-_CACHE_DIR = os.path.expanduser(os.environ.get("DIFFPLAN_JAX_CACHE", "~/.cache/diffplan-jax"))
-try:
-    os.makedirs(_CACHE_DIR, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", _CACHE_DIR)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-except OSError:  # an unwritable home: run without the persistent cache
-    pass
+from diffplan.jax_cache import enable_compilation_cache  # noqa: E402
+
+enable_compilation_cache()
 
 GRID_BATCH = 64
 """Episodes per generated test batch (one compilation per setting serves every seed)."""

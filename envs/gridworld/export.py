@@ -33,6 +33,8 @@ import tempfile
 import time
 
 import jax
+
+from diffplan.jax_cache import enable_compilation_cache
 import jax.numpy as jnp
 import numpy as np
 
@@ -40,7 +42,6 @@ from envs.gridworld import env, episode, grammar
 from envs.gridworld.config import SETTINGS, GridConfig, make_config
 
 DEFAULT_CHUNK_SIZE = 4096
-DEFAULT_CACHE_DIR = "~/.cache/diffplan-jax"
 MAX_EPISODES = 2**31 - 1
 """Episode indices are int32 (as in episode.generate_batch)."""
 MAX_SEED = 2**32 - 1
@@ -57,19 +58,6 @@ CONTRACT_DTYPES: dict[str, str] = {
     "object_names": "str",
 }
 """The export's keys (exactly these) and dtypes ("str" = a numpy unicode array)."""
-
-
-def enable_compilation_cache(cache_dir: str | None = None) -> str:
-    """Turns on JAX's persistent compilation cache (compiled programs reused across processes).
-
-    The directory is ``cache_dir``, else $DIFFPLAN_JAX_CACHE, else ~/.cache/diffplan-jax.
-    Returns the directory used."""
-    path = os.path.expanduser(cache_dir or os.environ.get("DIFFPLAN_JAX_CACHE", DEFAULT_CACHE_DIR))
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    return path
 
 
 @functools.partial(jax.jit, static_argnames=("config", "chunk_size"))

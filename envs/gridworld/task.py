@@ -46,16 +46,36 @@ def goal_cell(plan, excluded=None):
     return jnp.stack([flat // goal.shape[1], flat % goal.shape[1]]).astype(jnp.int32)
 
 
-def psi(state: env.State, plan, path_weight: float = 2.0):
+def path_end_cell(plan, agent, excluded=None):
+    """int32 (2,): the plan's path cell (value > 0) farthest (Manhattan) from the agent, or the
+    agent's cell if the plan marks none: the goal of a model trained without a goal channel
+    (the paper's ablations without g)."""
+    size = plan.shape[1]
+    rows, cols = jnp.meshgrid(jnp.arange(plan.shape[0]), jnp.arange(size), indexing="ij")
+    distance = jnp.abs(rows - agent[0]) + jnp.abs(cols - agent[1])
+    on_path = plan[..., 0] > 0
+    if excluded is not None:
+        on_path = on_path & ~excluded
+    score = jnp.where(on_path, distance, -1).ravel()
+    flat = jnp.argmax(score)
+    cell = jnp.stack([flat // size, flat % size]).astype(jnp.int32)
+    return jnp.where(score[flat] >= 0, cell, agent.astype(jnp.int32))
+
+
+def psi(state: env.State, plan, path_weight: float = 2.0, use_goal_channel: bool = True):
     """The next move (int32 () in 0..3) following the plan; see the module docstring.
 
-    plan: float32 (H, W, G) in [-1, 1] (path, goal estimate).
+    plan: float32 (H, W, G) in [-1, 1] (path, goal estimate). use_goal_channel=False heads for
+    the far end of the plan's path instead (for models trained without a goal estimate).
     """
     known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
     passable = ~known_obstacle
     path01 = (jnp.clip(plan[..., 0], -1.0, 1.0) + 1.0) / 2.0
     enter_cost = 1.0 + path_weight * (1.0 - path01)
-    goal = goal_cell(plan, known_obstacle)
+    if use_goal_channel:
+        goal = goal_cell(plan, known_obstacle)
+    else:
+        goal = path_end_cell(plan, state.agent, known_obstacle)
     field = bfs.cost_to_go(passable, goal, enter_cost)
     return bfs.best_move(field, passable, state.agent, enter_cost)
 
@@ -66,6 +86,7 @@ class GridTask:
 
     config: GridConfig
     path_weight: float = 2.0
+    use_goal_channel: bool = True
 
     @property
     def height(self) -> int:
@@ -92,7 +113,7 @@ class GridTask:
         return episode.tokens
 
     def psi(self, state: env.State, plan):
-        return psi(state, plan, self.path_weight)
+        return psi(state, plan, self.path_weight, self.use_goal_channel)
 
     def step(self, state: env.State, action):
         return env.step(state, action, self.config)
@@ -105,7 +126,9 @@ class GridTask:
 
     def at_goal_estimate(self, state: env.State, plan):
         known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
-        return jnp.all(state.agent == goal_cell(plan, known_obstacle))
+        if self.use_goal_channel:
+            return jnp.all(state.agent == goal_cell(plan, known_obstacle))
+        return jnp.all(state.agent == path_end_cell(plan, state.agent, known_obstacle))
 
 
 def _state_along_expert(episode: Episode, config: GridConfig, index):

@@ -1,0 +1,112 @@
+"""The paper's ablation (Table 4) on MO1G and P-MO2G: each row a model we train.
+
+Rows, as in the paper:
+  baseline        class-id grid (one scalar channel), no goal estimate g, one-shot plan
+  + grid repr     learned cell embeddings shared with the instruction words, no g, one-shot
+  + g             + the goal-estimate channel, one-shot
+  + on the fly    + re-planning before every move (the main model, Algorithm 1)
+Models without g are followed by psi towards the far end of their predicted path.
+
+`python -m experiments.ablation_compile --help`. The "+ g" and "+ on the fly" rows use the main
+denoiser (checkpoints/compile_gridworld); the two others are trained by `--train` into
+runs/compile_gridworld_class_id_no_goal and runs/compile_gridworld_no_goal (or read from there
+if a training already ran), with the same recipe as the main one.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+
+from diffplan.jax_cache import enable_compilation_cache
+from experiments import compile_common as cc
+
+VARIANTS = (
+    ("baseline", dict(grid_repr="class_id", goal_channel=False), "one_shot"),
+    ("+ grid repr", dict(grid_repr="embed", goal_channel=False), "one_shot"),
+    ("+ g", dict(grid_repr="embed", goal_channel=True), "one_shot"),
+    ("+ on the fly", dict(grid_repr="embed", goal_channel=True), "on_the_fly"),
+)
+SETTINGS = ("mo1g", "p_mo2g")
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="python -m experiments.ablation_compile",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--episodes", type=int, default=1000, help="episodes per setting")
+    p.add_argument("--seed", type=int, default=cc.DEFAULT_EVAL_SEED, help="evaluation seed")
+    p.add_argument("--json", metavar="PATH", help="write the results (contract 2) as JSON")
+    p.add_argument("--train", action="store_true",
+                   help="train the ablation models that have no checkpoint yet")
+    p.add_argument("--train-steps", type=int, default=cc.ExperimentSpec("p_mo2g").train_steps,
+                   help="optimisation steps of each ablation training")
+    p.add_argument("--model-size", choices=sorted(cc.MODEL_SIZES), default="default",
+                   help="denoiser size of the ablation trainings")
+    p.add_argument("--main-checkpoint", metavar="DIR", default=None,
+                   help="the main denoiser (default: the shipped one)")
+    p.add_argument("--checkpoint-root", metavar="DIR", default=None,
+                   help="where ablation trainings live (default runs/)")
+    p.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated settings")
+    p.add_argument("--batch-size", type=int, default=250, help="episodes per jitted call")
+    p.add_argument("--num-steps", type=int, default=cc.ExperimentSpec("p_mo2g").num_steps,
+                   help="denoising steps per plan")
+    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    return p
+
+
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
+    if args.episodes < 1 or any(s not in SETTINGS for s in settings) or not settings:
+        parser.error(f"need --episodes >= 1 and --settings among {SETTINGS}")
+    enable_compilation_cache()
+    progress = not args.no_progress
+    models = {}
+    for name, fields, _ in VARIANTS:
+        spec = dataclasses.replace(cc.SPECS["p_mo2g"], num_steps=args.num_steps, **fields)
+        key = spec.training_name
+        if key in models:
+            continue
+        if fields["goal_channel"] and fields["grid_repr"] == "embed":
+            checkpoint = args.main_checkpoint or spec.default_checkpoint()
+        else:
+            root = args.checkpoint_root or os.path.join(cc.REPO_ROOT, "runs")
+            checkpoint = os.path.join(root, key)
+            if args.train:
+                cc.train_setting(spec, checkpoint, steps=args.train_steps, progress=progress,
+                                 model_size=args.model_size)
+        try:
+            models[key] = cc.load_model(spec, checkpoint)[:2]
+        except FileNotFoundError:
+            print(f"No checkpoint in {checkpoint}: run with --train.", file=sys.stderr)
+            raise SystemExit(2)
+
+    rows = []
+    for setting in settings:
+        base = dataclasses.replace(cc.SPECS[setting], num_steps=args.num_steps)
+        episodes = cc.eval_episodes(base.grid_config(), args.episodes, args.seed)
+        for name, fields, mode in VARIANTS:
+            spec = dataclasses.replace(base, **fields)
+            params, model_config = models[spec.training_name]
+            rollout, seconds = cc.evaluate_mode(spec, spec.task(), params, model_config, episodes,
+                                                args.episodes, args.seed, mode, args.batch_size,
+                                                progress)
+            row = cc.metrics_row(f"{setting} {name}", rollout, episodes, seconds,
+                                 base.grid_config().has_reference)
+            row["setting"] = setting
+            rows.append(row)
+    result = {"experiment": "ablation_compile", "episodes": args.episodes, "seed": args.seed,
+              "rows": rows}
+    print(cc.format_table(rows))
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+    return result
+
+
+if __name__ == "__main__":
+    main()
