@@ -129,3 +129,17 @@ def test_same_seed_same_results(tiny_run, tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "a.npz")["positions"],
                                   np.load(tmp_path / "b.npz")["positions"])
     assert a["rows"][0]["SR"] == b["rows"][0]["SR"]
+
+
+def test_ship_checkpoint_writes_a_loadable_export_with_its_note(tiny_run, tmp_path):
+    from experiments import ship_checkpoint
+
+    out, _ = tiny_run
+    dest = tmp_path / "shipped"
+    ship_checkpoint.main(["--train-dir", str(out / "train"), "--out", str(dest),
+                          "--results", str(out / "r.json")])
+    note = (dest / "NOTE.md").read_text()
+    assert "--train" in note and "seed" in note and "on-the-fly" in note
+    params, model_config, _ = cc.load_model(cc.SPECS["p_mo2g"], str(dest))
+    assert model_config == cc.SPECS["p_mo2g"].model_config("tiny")
+    assert jax.tree.leaves(params)
