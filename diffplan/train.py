@@ -94,6 +94,11 @@ class ConfigMismatchError(ValueError):
 # ------------------------------------------------------------------------------- configs
 
 # Fields that do not change the computation: they may differ when resuming.
+PREDICTIONS = ("eps", "x0")
+"""What the network predicts for the generated channels: the noise (the paper's objective) or
+the clean plan x0 (whose loss weighs every noise level alike, so the model must infer the
+goal from the conditions even when the noisy channels carry no information)."""
+
 _RESUMABLE_FIELDS = ("checkpoint_every", "log_every", "val_every", "val_batches")
 
 
@@ -113,6 +118,7 @@ class TrainConfig:
         update n, so early EMA params follow the model.
       num_train_timesteps: diffusion steps T of the cosine schedule (paper: 100).
       num_gen_channels: G, the number of trailing generated channels of x0 (2: path, goal).
+      prediction: "eps" (the paper) or "x0": the network's target (see PREDICTIONS).
       checkpoint_every: save a checkpoint every this many steps (and at the end).
       log_every: append metrics every this many steps (and at the end).
       val_every: evaluate the EMA params' loss on fixed validation batches every this many
@@ -130,6 +136,7 @@ class TrainConfig:
     ema_decay: float = 0.999
     num_train_timesteps: int = 100
     num_gen_channels: int = 2
+    prediction: str = "eps"
     checkpoint_every: int = 1000
     log_every: int = 50
     val_every: int = 0
@@ -137,7 +144,12 @@ class TrainConfig:
 
     def __post_init__(self):
         ints = {f.name for f in dataclasses.fields(self) if f.type in ("int", int)}
+        if self.prediction not in PREDICTIONS:
+            raise ValueError(f"TrainConfig.prediction must be one of {PREDICTIONS}, "
+                             f"got {self.prediction!r}")
         for f in dataclasses.fields(self):
+            if f.name == "prediction":
+                continue
             v = getattr(self, f.name)
             if f.name in ints:
                 if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
@@ -246,7 +258,7 @@ def _check_batch(batch: Batch, num_gen_channels: int) -> None:
 
 
 def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
-                   alphas_cumprod: jax.Array, num_gen_channels: int):
+                   alphas_cumprod: jax.Array, num_gen_channels: int, prediction: str = "eps"):
     """The masked noise-prediction MSE of one batch.
 
     Args:
@@ -279,7 +291,8 @@ def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
                          f"{eps.shape}")
     mask = loss_mask.astype(jnp.float32)
     msum = jnp.sum(mask)
-    sq = jnp.sum(mask * jnp.square(pred.astype(jnp.float32) - eps))
+    target = eps if prediction == "eps" else x0[..., C:]
+    sq = jnp.sum(mask * jnp.square(pred.astype(jnp.float32) - target))
     loss = jnp.where(msum > 0, sq / jnp.maximum(msum, 1e-12), 0.0)
     return loss, {"t": t, "mask_sum": msum}
 
@@ -361,7 +374,7 @@ def _make_core_step(model, config: TrainConfig, alphas_cumprod):
 
     def core(state: TrainState, batch: Batch, key: jax.Array):
         def loss_fn(p):
-            return diffusion_loss(p, model.apply, batch, key, ab, G)
+            return diffusion_loss(p, model.apply, batch, key, ab, G, config.prediction)
 
         (loss, _), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         grad_norm = optax.tree.norm(grads)
@@ -433,7 +446,7 @@ def _val_loss(params, val_root, alphas_cumprod, *, model, config, batch_fn, mesh
         batch_key, loss_key = jax.random.split(jax.random.fold_in(val_root, j))
         batch = shd.constrain_batch(Batch(*batch_fn(batch_key, config.batch_size)), mesh)
         loss, _ = diffusion_loss(params, model.apply, batch, loss_key, alphas_cumprod,
-                                 config.num_gen_channels)
+                                 config.num_gen_channels, config.prediction)
         return total + loss, None
 
     total, _ = jax.lax.scan(body, jnp.zeros((), jnp.float32), jnp.arange(config.val_batches))

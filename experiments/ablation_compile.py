@@ -79,7 +79,8 @@ def main(argv=None):
                 cc.train_setting(spec, checkpoint, steps=args.train_steps, progress=progress,
                                  model_size=args.model_size)
         try:
-            models[key] = cc.load_model(spec, checkpoint)[:2]
+            params, model_config, metadata = cc.load_model(spec, checkpoint)
+            models[key] = (params, model_config, cc.checkpoint_prediction(metadata))
         except FileNotFoundError:
             print(f"No checkpoint in {checkpoint}: run with --train.", file=sys.stderr)
             raise SystemExit(2)
@@ -90,7 +91,8 @@ def main(argv=None):
         episodes = cc.eval_episodes(base.grid_config(), args.episodes, args.seed)
         for name, fields, mode in VARIANTS:
             spec = dataclasses.replace(base, **fields)
-            params, model_config = models[spec.training_name]
+            params, model_config, prediction = models[spec.training_name]
+            spec = dataclasses.replace(spec, prediction=prediction)
             rollout, seconds = cc.evaluate_mode(spec, spec.task(), params, model_config, episodes,
                                                 args.episodes, args.seed, mode, args.batch_size,
                                                 progress)

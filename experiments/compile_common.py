@@ -55,6 +55,7 @@ class ExperimentSpec:
     setting: str
     grid_repr: str = "embed"
     goal_channel: bool = True
+    prediction: str = "eps"
     train_steps: int = 4000
     batch_size: int = 64
     lr: float = 1e-3
@@ -92,6 +93,7 @@ class ExperimentSpec:
         from diffplan.train import TrainConfig
         steps = self.train_steps if steps is None else steps
         return TrainConfig(seed=seed, steps=steps, batch_size=self.batch_size, lr=self.lr,
+                           prediction=self.prediction,
                            warmup_steps=min(self.warmup_steps, max(steps // 10, 0)),
                            num_train_timesteps=100, checkpoint_every=500,
                            log_every=max(1, min(100, steps // 10)))
@@ -231,14 +233,20 @@ def load_model(spec: ExperimentSpec, checkpoint_dir: str):
     return params, model_config, metadata
 
 
+def checkpoint_prediction(metadata) -> str:
+    """What a checkpoint's network predicts ("eps" or "x0"), from its training config."""
+    return metadata.get("train_config", {}).get("prediction", "eps")
+
+
 # ---------------------------------------------------------------------------- evaluation
 
 STREAM_MODES = ("on_the_fly", "warm_start")
 
 
-def make_rollout_fn(task, model_config, planner_config, num_slots=None):
+def make_rollout_fn(task, model_config, planner_config, num_slots=None, prediction="eps"):
     """jitted (params, keys (B,), episodes) -> Rollout for one planning mode; with num_slots,
-    the slot-refilling rollout_stream (re-planning modes)."""
+    the slot-refilling rollout_stream (re-planning modes). prediction "x0" converts the
+    network's x0 estimate into the noise the sampler expects."""
     from diffplan.denoiser import Denoiser
     from diffplan.planner import rollout, rollout_stream
     from diffplan.schedule import cosine_schedule
@@ -247,7 +255,12 @@ def make_rollout_fn(task, model_config, planner_config, num_slots=None):
     schedule = cosine_schedule(100)
 
     def apply_fn(params, x_t, t, tokens):
-        return model.apply({"params": params}, x_t, t, tokens)
+        out = model.apply({"params": params}, x_t, t, tokens)
+        if prediction == "eps":
+            return out
+        ab = schedule.alphas_cumprod[t][:, None, None, None]
+        x_gen = x_t[..., task.num_cond_channels:]
+        return (x_gen - jnp.sqrt(ab) * out) / jnp.sqrt(1.0 - ab)
 
     @jax.jit
     def run(params, keys, episodes):
@@ -275,7 +288,8 @@ def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, bat
     stream = mode in STREAM_MODES and not record_plans
     per_call = min(n, 2 * batch_size) if stream else batch_size
     run = make_rollout_fn(task, model_config, planner_config,
-                          num_slots=min(batch_size, per_call) if stream else None)
+                          num_slots=min(batch_size, per_call) if stream else None,
+                          prediction=spec.prediction)
     root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
     order = (np.arange(n) if stream
              else np.argsort(np.asarray(episodes.expert_length), kind="stable"))
@@ -400,6 +414,9 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--train-steps", type=int, default=spec.train_steps,
                    help=f"optimisation steps of --train (default {spec.train_steps})")
     p.add_argument("--train-seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--prediction", choices=("eps", "x0"), default=spec.prediction,
+                   help="network target of --train: the noise (the paper) or the clean plan "
+                        f"(default {spec.prediction}; evaluation follows the checkpoint)")
     p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default="default",
                    help="denoiser size for --train ('tiny' is for smoke tests; default 'default')")
     p.add_argument("--modes", default=",".join(spec.modes),
@@ -451,6 +468,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
 
     train_seconds = None
     if args.train:
+        spec = dataclasses.replace(spec, prediction=args.prediction)
         train_dir = args.train_dir or spec.default_train_dir()
         params, model_config, train_seconds = train_setting(
             spec, train_dir, seed=args.train_seed, steps=args.train_steps, progress=progress,
@@ -465,6 +483,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
             print(f"No checkpoint in {checkpoint}: train one with `python -m experiments."
                   f"{spec.name} --train` (or pass --checkpoint DIR).", file=sys.stderr)
             raise SystemExit(2)
+        spec = dataclasses.replace(spec, prediction=checkpoint_prediction(metadata))
 
     grid_config = spec.grid_config()
     task = spec.task()

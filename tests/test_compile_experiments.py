@@ -143,3 +143,15 @@ def test_ship_checkpoint_writes_a_loadable_export_with_its_note(tiny_run, tmp_pa
     params, model_config, _ = cc.load_model(cc.SPECS["p_mo2g"], str(dest))
     assert model_config == cc.SPECS["p_mo2g"].model_config("tiny")
     assert jax.tree.leaves(params)
+
+
+def test_x0_prediction_trains_and_evaluates(tmp_path):
+    """--prediction x0: the checkpoint records it and evaluation converts x0 to noise."""
+    result = cc.main("p_mo2g", ["--train", "--prediction", "x0", "--train-steps", "2",
+                                "--model-size", "tiny", "--train-dir", str(tmp_path / "x0"),
+                                "--episodes", "2", "--batch-size", "2", "--num-steps", "2",
+                                "--warm-start-step", "1", "--modes", "on_the_fly",
+                                "--no-progress"])
+    assert result["rows"][0]["denoiser_calls_per_episode"] > 0
+    _, _, metadata = cc.load_model(cc.SPECS["p_mo2g"], str(tmp_path / "x0"))
+    assert cc.checkpoint_prediction(metadata) == "x0"

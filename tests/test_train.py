@@ -315,3 +315,25 @@ def test_public_train_step_is_pure_and_learns():
         s, m = step(s, batch, key)  # same batch and noise: the loss must go down
     assert float(m["loss"]) < float(m1["loss"])
     assert np.isfinite(float(m["grad_norm"]))
+
+
+def test_x0_prediction_targets_the_clean_generated_channels():
+    """With prediction="x0" the loss is the masked MSE to x0's generated channels: a model that
+    returns exactly those channels has zero loss, one returning the noise does not."""
+    import jax.numpy as jnp
+    from diffplan.schedule import cosine_schedule
+    from diffplan.train import Batch, TrainConfig, diffusion_loss
+
+    x0 = jax.random.uniform(jax.random.PRNGKey(0), (4, 8, 8, 5), minval=-1, maxval=1)
+    batch = Batch(x0=x0, tokens=jnp.ones((4, 3), jnp.int32), loss_mask=jnp.ones((4, 8, 8, 2)))
+    ab = cosine_schedule(100).alphas_cumprod
+
+    def oracle(variables, x_t, t, tokens):
+        return x0[..., 3:]
+
+    loss, _ = diffusion_loss(None, oracle, batch, jax.random.PRNGKey(1), ab, 2, "x0")
+    assert float(loss) == 0.0
+    loss_eps, _ = diffusion_loss(None, oracle, batch, jax.random.PRNGKey(1), ab, 2, "eps")
+    assert float(loss_eps) > 0.1
+    with pytest.raises(ValueError, match="prediction"):
+        TrainConfig(prediction="v")
