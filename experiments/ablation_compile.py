@@ -66,7 +66,8 @@ def main(argv=None):
     progress = not args.no_progress
     models = {}
     for name, fields, _ in VARIANTS:
-        spec = dataclasses.replace(cc.SPECS["p_mo2g"], num_steps=args.num_steps, **fields)
+        spec = dataclasses.replace(cc.SPECS["p_mo2g"], num_steps=args.num_steps,
+                                   warm_start_step=args.num_steps - 1, **fields)
         key = spec.training_name
         if key in models:
             continue
@@ -87,7 +88,9 @@ def main(argv=None):
 
     rows = []
     for setting in settings:
-        base = dataclasses.replace(cc.SPECS[setting], num_steps=args.num_steps)
+        # (No warm-start rows here; warm_start_step only has to be valid.)
+        base = dataclasses.replace(cc.SPECS[setting], num_steps=args.num_steps,
+                                   warm_start_step=args.num_steps - 1)
         episodes = cc.eval_episodes(base.grid_config(), args.episodes, args.seed)
         for name, fields, mode in VARIANTS:
             spec = dataclasses.replace(base, **fields)

@@ -155,3 +155,23 @@ def test_x0_prediction_trains_and_evaluates(tmp_path):
     assert result["rows"][0]["denoiser_calls_per_episode"] > 0
     _, _, metadata = cc.load_model(cc.SPECS["p_mo2g"], str(tmp_path / "x0"))
     assert cc.checkpoint_prediction(metadata) == "x0"
+
+
+def test_ablation_runs_every_row_on_a_tiny_configuration(tiny_run, tmp_path):
+    from experiments import ablation_compile
+
+    out, _ = tiny_run
+    result = ablation_compile.main([
+        "--train", "--train-steps", "2", "--model-size", "tiny", "--main-checkpoint",
+        str(out / "train"), "--checkpoint-root", str(tmp_path), "--settings", "mo1g",
+        "--episodes", "2", "--batch-size", "2", "--num-steps", "2", "--no-progress",
+        "--json", str(tmp_path / "ablation.json")])
+    methods = [row["method"] for row in result["rows"]]
+    assert methods == ["mo1g baseline", "mo1g + grid repr", "mo1g + g", "mo1g + on the fly"]
+    for row in result["rows"]:
+        assert EXPECTED_ROW_FIELDS <= set(row)
+    with open(tmp_path / "ablation.json") as f:
+        assert json.load(f)["experiment"] == "ablation_compile"
+    # The no-g models were trained without the goal loss, with their own grid representation.
+    _, config, meta = cc.load_model(cc.SPECS["mo1g"], str(tmp_path / "compile_gridworld_class_id_no_goal"))
+    assert config.grid_repr == "class_id" and meta["extra"]["goal_channel"] is False
