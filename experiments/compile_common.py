@@ -55,7 +55,9 @@ class ExperimentSpec:
     setting: str
     grid_repr: str = "embed"
     goal_channel: bool = True
-    prediction: str = "eps"
+    prediction: str = "x0"
+    detour_prob: float = 0.5
+    goal_loss_weight: float = 3.0
     train_steps: int = 4000
     batch_size: int = 64
     lr: float = 1e-3
@@ -138,16 +140,16 @@ def training_episode_keys(key, batch_size: int):
     return jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
 
 
-def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True):
+def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True, **example_kwargs):
     """batch_fn(key, batch_size) -> Batch with the settings' examples in fixed proportions:
     mixture ((setting, count), ...) gives count examples of each setting per sum(counts) (the
     batch size must be a multiple of sum(counts)); example j of setting s comes from
-    training_episode_keys(fold_in(key, index of s), ...)."""
+    training_episode_keys(fold_in(key, index of s), ...). example_kwargs go to make_batch_fn."""
     from diffplan.train import Batch
     from envs.gridworld.config import make_config
 
     total = sum(count for _, count in mixture)
-    fns = [(make_batch_fn(make_config(setting), goal_channel), count)
+    fns = [(make_batch_fn(make_config(setting), goal_channel, **example_kwargs), count)
            for setting, count in mixture]
 
     def batch_fn(key, batch_size):
@@ -162,20 +164,30 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True):
     return batch_fn
 
 
-def make_batch_fn(grid_config, goal_channel: bool = True, goal_loss_seen_only: bool = False):
+def make_batch_fn(grid_config, goal_channel: bool = True, goal_loss_seen_only: bool = False,
+                  detour_prob: float = 0.0, goal_loss_weight: float = 1.0):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of grid-world training examples.
 
     goal_channel=False trains without the goal estimate (the paper's "- g" ablation: the goal
     channel is dropped from the loss). goal_loss_seen_only masks the goal loss to seen cells.
+    detour_prob: the share of examples whose agent left the expert path by a few random moves
+    (envs.gridworld.task.training_example). goal_loss_weight: the goal channel's weight in the
+    loss relative to the path channel's (the goal is one cell of H x W).
     """
+    if goal_loss_weight <= 0:
+        raise ValueError(f"goal_loss_weight must be > 0, got {goal_loss_weight}")
+    if not 0 <= detour_prob <= 1:
+        raise ValueError(f"detour_prob must be in [0, 1], got {detour_prob}")
     from diffplan.train import Batch
     from envs.gridworld.task import training_example
 
     def batch_fn(key, batch_size):
         keys = training_episode_keys(key, batch_size)
-        x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None))(keys, grid_config)
+        x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None, None))(
+            keys, grid_config, detour_prob)
         mask = jnp.ones(x0.shape[:-1] + (2,), jnp.float32)
-        goal_mask = seen.astype(jnp.float32) if goal_loss_seen_only else mask[..., 1]
+        goal_mask = goal_loss_weight * (seen.astype(jnp.float32) if goal_loss_seen_only
+                                        else mask[..., 1])
         if not goal_channel:
             goal_mask = jnp.zeros_like(goal_mask)
         mask = mask.at[..., 1].set(goal_mask)
@@ -208,7 +220,9 @@ def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: i
 
     model_config = spec.model_config(model_size)
     model = Denoiser(model_config)
-    batch_fn = make_mixture_batch_fn(goal_channel=spec.goal_channel)
+    batch_fn = make_mixture_batch_fn(goal_channel=spec.goal_channel,
+                                     detour_prob=spec.detour_prob,
+                                     goal_loss_weight=spec.goal_loss_weight)
     # Input shapes of one example (every setting's examples have the same shapes).
     init_batch = jax.eval_shape(lambda k: make_batch_fn(spec.grid_config())(k, 1),
                                 jax.random.PRNGKey(0))
@@ -217,6 +231,8 @@ def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: i
                    init_batch=init_batch, progress=progress,
                    extra_metadata={"mixture": [list(m) for m in TRAINING_MIXTURE],
                                    "goal_channel": spec.goal_channel,
+                                   "detour_prob": spec.detour_prob,
+                                   "goal_loss_weight": spec.goal_loss_weight,
                                    "model_size": model_size})
     return result.ema_params, model_config, time.time() - start
 

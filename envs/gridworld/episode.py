@@ -124,8 +124,10 @@ def _objects_grid(key, config: GridConfig, agent, target, reference):
     return grid, classes[0], reference_class
 
 
-def _expert(config: GridConfig, passable, agent, target, reference):
-    """Expert positions (max_steps+1, 2), length (), and whether it exists within max_steps."""
+def expert_path_positions(config: GridConfig, passable, agent, target, reference):
+    """A shortest path agent -> reference (if the setting has one) -> target over passable
+    cells (bool (H, W)): positions int32 (max_steps+1, 2) padded by repeating the end,
+    length int32 () in moves (capped at max_steps), and whether it fits in max_steps."""
     to_target = bfs.cost_to_go(passable, target)
     if config.has_reference:
         to_ref = bfs.cost_to_go(passable, reference)
@@ -166,7 +168,7 @@ def generate(key, config: GridConfig) -> Episode:
         return _random_subset(k_cells, free, count, config.max_obstacles)
 
     def layout_result(obstacles):
-        return _expert(config, ~obstacles, agent, target, reference)
+        return expert_path_positions(config, ~obstacles, agent, target, reference)
 
     def cond(carry):
         # The obstacle-free fallback is always solvable (GridConfig checks max_steps), so the

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from envs.gridworld import bfs, env
 from envs.gridworld.config import GridConfig
-from envs.gridworld.episode import OBSTACLE_CELL, Episode, generate
+from envs.gridworld.episode import OBSTACLE_CELL, Episode, expert_path_positions, generate
 
 NUM_COND_CHANNELS = 1 + env.NUM_FEATURES
 NUM_GEN_CHANNELS = 2
@@ -154,25 +154,60 @@ def _state_along_expert(episode: Episode, config: GridConfig, index):
     )
 
 
-def training_example(key, config: GridConfig):
+def _random_detour(key, state: env.State, config: GridConfig, num_moves, max_moves: int):
+    """The state after ``num_moves`` (int32 () <= max_moves, static) uniformly random moves
+    from ``state`` (moves into obstacles or off the grid stay in place, as in the world)."""
+    actions = jax.random.randint(key, (max_moves,), 0, 4)
+
+    def move(s, inputs):
+        i, action = inputs
+        moved = env.step(s, action, config)
+        return jax.tree.map(lambda new, old: jnp.where(i < num_moves, new, old), moved, s), None
+
+    state, _ = jax.lax.scan(move, state, (jnp.arange(max_moves), actions))
+    return state
+
+
+def _expert_from(state: env.State, episode: Episode, config: GridConfig):
+    """bool (H, W): the cells of a shortest path from the agent's cell through the reference
+    (unless already reached) to the target, ends included."""
+    passable = episode.grid != OBSTACLE_CELL
+    reference = (jnp.where(state.reached_reference, state.agent, episode.reference)
+                 if config.has_reference else episode.reference)
+    positions, length, _ = expert_path_positions(config, passable, state.agent, episode.target,
+                                                 reference)
+    valid = jnp.arange(positions.shape[0]) <= length
+    return bfs.positions_to_mask(positions, config.size, valid)
+
+
+def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_detour: int = 8):
     """One supervised example: a state along an expert path and the plan from there.
 
     The agent is placed after a uniformly drawn number of expert moves (0..expert_length - 1)
-    with the field of view accumulated along the way; the path target is the rest of the expert
-    path (current cell to target, ends included) and the goal target the target cell, whether or
-    not it has been seen (the model must infer it from the instruction and the reference).
+    with the field of view accumulated along the way. With probability ``detour_prob`` it then
+    takes 1..max_detour uniformly random moves (so the model also sees the states an imperfect
+    on-the-fly agent reaches). The path target is a shortest path from there (through the
+    reference unless it was reached) to the target, ends included (without a detour: the rest
+    of the expert path); the goal target is the target cell, whether or not it has been seen
+    (the model must infer it from the instruction and the reference).
 
     Returns (x0 float32 (H, W, C + G), tokens int32 (L,), seen bool (H, W)).
     """
-    k_episode, k_index = jax.random.split(key)
+    k_episode, k_index, k_detour, k_moves, k_walk = jax.random.split(key, 5)
     episode = generate(k_episode, config)
     length = jnp.maximum(episode.expert_length, 1)
     index = jax.random.randint(k_index, (), 0, length)
     state = _state_along_expert(episode, config, index)
+    if detour_prob > 0:
+        detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done
+        num_moves = jnp.where(detour, jax.random.randint(k_moves, (), 1, max_detour + 1), 0)
+        state = _random_detour(k_walk, state, config, num_moves, max_detour)
+        path = _expert_from(state, episode, config)
+    else:
+        steps = jnp.arange(episode.expert_positions.shape[0])
+        remaining = (steps >= index) & (steps <= episode.expert_length)
+        path = bfs.positions_to_mask(episode.expert_positions, config.size, remaining)
     obs = env.observe(state, config)
-    steps = jnp.arange(episode.expert_positions.shape[0])
-    remaining = (steps >= index) & (steps <= episode.expert_length)
-    path = bfs.positions_to_mask(episode.expert_positions, config.size, remaining)
     goal = jnp.zeros_like(path).at[episode.target[0], episode.target[1]].set(True)
     x0 = jnp.concatenate([
         condition_from_observation(obs),

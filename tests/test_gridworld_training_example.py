@@ -1,0 +1,93 @@
+"""envs.gridworld.task.training_example: the supervised examples, checked against a plain-numpy
+oracle (deque BFS): the path target is a shortest path from the agent's cell (through the
+reference unless reached) to the target, the condition channels match the state, and examples
+with detours leave the expert path."""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_gridworld_bfs import oracle_bfs
+
+from envs.gridworld import grammar
+from envs.gridworld.config import make_config
+from envs.gridworld.episode import OBSTACLE_CELL, generate
+from envs.gridworld.task import (GOAL_CHANNEL, PATH_CHANNEL, training_example)
+
+BATCH = 24
+
+
+@pytest.fixture(scope="module")
+def examples_fn():
+    config = make_config("p_mo2g")
+
+    @jax.jit
+    def run(keys, detour_prob):
+        del detour_prob
+        return jax.vmap(lambda k: (training_example(k, config, 1.0),
+                                   training_example(k, config, 0.0),
+                                   generate(jax.random.split(k, 5)[0], config)))(keys)
+
+    return config, run
+
+
+def _connected(mask, start, end):
+    """True if the cells of mask form a 4-connected set containing start and end."""
+    cells = {tuple(c) for c in np.argwhere(mask)}
+    if tuple(start) not in cells or tuple(end) not in cells:
+        return False
+    stack, seen = [tuple(start)], {tuple(start)}
+    while stack:
+        r, c = stack.pop()
+        for dr, dc in ((-1, 0), (0, 1), (1, 0), (0, -1)):
+            n = (r + dr, c + dc)
+            if n in cells and n not in seen:
+                seen.add(n)
+                stack.append(n)
+    return seen == cells
+
+
+@settings(max_examples=4, deadline=None, database=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_path_target_is_a_shortest_path_through_the_reference(examples_fn, seed):
+    config, run = examples_fn
+    keys = jax.random.split(jax.random.PRNGKey(seed), BATCH)
+    (x_d, _, seen_d), (x_e, _, _), ep = jax.device_get(run(keys, 0))
+    left_expert = 0
+    for i in range(BATCH):
+        grid = ep.grid[i]
+        passable = grid != OBSTACLE_CELL
+        target, reference = tuple(ep.target[i]), tuple(ep.reference[i])
+        for x, detour in ((x_d[i], True), (x_e[i], False)):
+            agent = tuple(np.argwhere(x[..., 2] > 0)[0])  # feature "agent" = channel 2
+            assert passable[agent]
+            path = x[..., PATH_CHANNEL] > 0
+            goal = np.argwhere(x[..., GOAL_CHANNEL] > 0)
+            assert goal.tolist() == [list(target)]
+            visited = x[..., 3] > 0
+            assert visited[agent]
+            reached = visited[reference]
+            # Shortest: number of path cells - 1 equals the oracle's distance.
+            d_target = oracle_bfs(passable, target)
+            if reached:
+                length = d_target[agent]
+            else:
+                length = oracle_bfs(passable, reference)[agent] + d_target[reference]
+                assert path[reference]
+            assert length >= 0 and _connected(path, agent, target)
+            # Every leg is shortest, so the path has length + 1 cells unless its legs overlap.
+            assert path.sum() - 1 <= length
+            if reached:
+                assert path.sum() - 1 == length
+            assert path[agent] and path[target] and not np.any(path & ~passable)
+            # Condition channel 0 shows exactly the seen cells' tokens.
+            cells = x[..., 0].astype(int)
+            seen = x[..., 4] > 0
+            assert np.all(cells[~seen] == grammar.UNSEEN_ID)
+            if detour:
+                assert np.array_equal(seen, seen_d[i])
+                left_expert += not ep.expert_path[i][agent] or not np.array_equal(
+                    visited, visited & ep.expert_path[i])
+    assert left_expert > 0  # detours do leave the expert path
