@@ -43,6 +43,10 @@ class PlannerConfig:
     k: plans per episode in k_shot mode. warm_start_step: steps skipped by warm re-plans.
     clip_x0: clip the predicted x0 to [-1, 1] during sampling. record_plans: also return the
     plan used at every move (memory B x T x H x W x G: for figures, small batches only).
+    fresh_noise: each re-plan draws new noise (key fold_in(episode key, move)); False reuses the
+    episode's noise (key fold_in(episode key, 0)) at every re-plan, so that with eta = 0 plans
+    change only where the observation changed (common random numbers: the goal estimate does
+    not jump between equally plausible guesses from one move to the next).
     """
 
     mode: str = "on_the_fly"
@@ -52,6 +56,7 @@ class PlannerConfig:
     warm_start_step: int = 8
     clip_x0: bool = True
     record_plans: bool = False
+    fresh_noise: bool = True
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -153,6 +158,7 @@ def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes
     t_max = task.max_steps
 
     def keys_at(t):
+        t = t if config.fresh_noise else 0
         return jax.vmap(lambda k: jax.random.fold_in(k, t))(keys)
 
     plan = first_plan = plan_fn(keys_at(0), states, tokens)
@@ -273,7 +279,8 @@ def rollout_stream(task, apply_fn: Callable, params, schedule: Schedule, keys, e
 
     def slot_keys(slot_ep, slot_t):
         ep_keys = keys[jnp.clip(slot_ep, 0, n - 1)]
-        return jax.vmap(jax.random.fold_in)(ep_keys, slot_t)
+        return jax.vmap(jax.random.fold_in)(ep_keys, slot_t if config.fresh_noise
+                                            else jnp.zeros_like(slot_t))
 
     def body(carry):
         next_ep, slot_ep, states, plans, slot_t, slot_calls, slot_plans, final_states, \

@@ -65,6 +65,7 @@ class ExperimentSpec:
     num_steps: int = 10
     warm_start_step: int = 8
     eval_batch: int = 250
+    fresh_noise: bool = True
     modes: tuple[str, ...] = ("one_shot", "k_shot", "on_the_fly", "warm_start")
     main_mode: str = "on_the_fly"
 
@@ -103,7 +104,8 @@ class ExperimentSpec:
     def planner_config(self, mode: str, **overrides):
         from diffplan.planner import PlannerConfig
         return PlannerConfig(mode=mode, num_steps=self.num_steps,
-                             warm_start_step=self.warm_start_step, **overrides)
+                             warm_start_step=self.warm_start_step,
+                             fresh_noise=self.fresh_noise, **overrides)
 
     @property
     def training_name(self) -> str:
@@ -443,6 +445,11 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--warm-start-step", type=int, default=spec.warm_start_step,
                    help="steps skipped by warm-start re-plans: each costs num_steps minus this "
                         f"(default {spec.warm_start_step})")
+    p.add_argument("--noise", choices=("fresh", "episode"),
+                   default="fresh" if spec.fresh_noise else "episode",
+                   help="initial noise of re-plans: 'fresh' draws new noise at every move, "
+                        "'episode' reuses the episode's noise so plans change only where the "
+                        "observation did (default %(default)s)")
     p.add_argument("--batch-size", type=int, default=spec.eval_batch,
                    help=f"episodes per jitted evaluation call (default {spec.eval_batch})")
     p.add_argument("--figures", metavar="DIR",
@@ -478,7 +485,8 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     modes = check_args(parser, args, spec)
     spec = dataclasses.replace(spec, num_steps=args.num_steps,
-                               warm_start_step=args.warm_start_step)
+                               warm_start_step=args.warm_start_step,
+                               fresh_noise=args.noise == "fresh")
     enable_compilation_cache()
     progress = not args.no_progress
 
@@ -522,6 +530,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         "checkpoint": os.path.relpath(checkpoint, REPO_ROOT) if checkpoint else None,
         "num_steps": spec.num_steps,
         "warm_start_step": spec.warm_start_step,
+        "noise": "fresh" if spec.fresh_noise else "episode",
         "trajectories_method": METHOD_NAMES[main_mode],
         "train_seconds": train_seconds,
         "machine": f"{os.cpu_count()} CPU cores, jax {jax.__version__} on "

@@ -180,13 +180,14 @@ def test_oracle_template_positions_match_grammar():
     assert grammar.compile_templates("mo1g")[0][MO1G_TARGET_POS] == grammar.SLOT_TARGET
 
 
-@pytest.mark.parametrize("mode", ["on_the_fly", "warm_start"])
-def test_stream_rollout_matches_batched_rollout(p_mo2g_episodes, mode):
+@pytest.mark.parametrize("mode, fresh_noise", [("on_the_fly", True), ("warm_start", True),
+                                               ("on_the_fly", False)])
+def test_stream_rollout_matches_batched_rollout(p_mo2g_episodes, mode, fresh_noise):
     """The slot-refilling rollout gives every episode exactly what the batched one gives."""
     from diffplan.planner import rollout_stream
 
     task = GridTask(make_config("p_mo2g"))
-    config = PlannerConfig(mode=mode, num_steps=2, warm_start_step=1)
+    config = PlannerConfig(mode=mode, num_steps=2, warm_start_step=1, fresh_noise=fresh_noise)
     keys = jax.random.split(jax.random.PRNGKey(0), 12)
     apply_fn = make_oracle_apply("p_mo2g")
     batched = jax.jit(lambda k, e: rollout(task, apply_fn, None, SCHEDULE, k, e, config))(
@@ -200,3 +201,25 @@ def test_stream_rollout_matches_batched_rollout(p_mo2g_episodes, mode):
                                   np.asarray(batched.final_state.success))
     np.testing.assert_array_equal(np.asarray(stream.final_state.collisions),
                                   np.asarray(batched.final_state.collisions))
+
+
+@pytest.mark.parametrize("fresh_noise", [True, False])
+def test_fresh_noise_controls_the_replan_noise(p_mo2g_episodes, fresh_noise):
+    """A denoiser predicting eps = 0 turns the initial noise into the plan: with fresh_noise the
+    plans of successive moves differ, without it every re-plan repeats the episode's plan."""
+    task = GridTask(make_config("p_mo2g"))
+    config = PlannerConfig(mode="on_the_fly", num_steps=2, warm_start_step=1, record_plans=True,
+                           fresh_noise=fresh_noise)
+
+    def zero_eps(params, x_t, t, tokens):
+        return jnp.zeros(x_t.shape[:-1] + (task.num_gen_channels,), x_t.dtype)
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 12)
+    out = jax.jit(lambda k, e: rollout(task, zero_eps, None, SCHEDULE, k, e, config))(
+        keys, p_mo2g_episodes)
+    plans = np.asarray(out.plans)
+    steps = np.asarray(out.steps)
+    multi = np.where(steps >= 2)[0]
+    assert len(multi) > 0
+    same = [np.array_equal(plans[i, 0], plans[i, 1]) for i in multi]
+    assert all(same) if not fresh_noise else not any(same)
