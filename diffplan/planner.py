@@ -185,11 +185,16 @@ def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes
     def body(carry):
         t, states, plan, positions, calls, num_plans, steps, plans = carry
         need = needs_plan(t, states, plan, num_plans)
-        new_plan = jax.lax.cond(
-            jnp.any(need),
-            lambda: plan_fn(keys_at(t), states, tokens, plan if warm else None, warm),
-            lambda: plan)
-        plan = jnp.where(need[:, None, None, None], new_plan, plan)
+        if config.mode == "k_shot":
+            # Few episodes re-plan at once: plan only those, in sub-batches.
+            plan = _plan_subset(plan_fn, need, keys_at(t), states, tokens, plan,
+                                max(1, batch // 8))
+        else:
+            new_plan = jax.lax.cond(
+                jnp.any(need),
+                lambda: plan_fn(keys_at(t), states, tokens, plan if warm else None, warm),
+                lambda: plan)
+            plan = jnp.where(need[:, None, None, None], new_plan, plan)
         calls = calls + need * per_replan_calls
         num_plans = num_plans + need
         if plans is not None:
@@ -214,6 +219,28 @@ def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes
     return Rollout(final_state=states, positions=positions, steps=steps.astype(jnp.int32),
                    done=v_done(states), denoiser_calls=calls.astype(jnp.int32),
                    num_plans=num_plans.astype(jnp.int32), first_plan=first_plan, plans=plans)
+
+
+def _plan_subset(plan_fn, need, keys, states, tokens, plan, chunk: int):
+    """plan with the entries where need (bool (B,)) replaced by fresh plans, computed
+    ``chunk`` episodes at a time (a while_loop over the needy ones only), so the cost follows
+    the number of episodes that re-plan rather than the batch size. Each episode uses its own
+    key and state, exactly as a full-batch plan_fn would."""
+    b = need.shape[0]
+    count = jnp.sum(need).astype(jnp.int32)
+    order = jnp.argsort(~need, stable=True).astype(jnp.int32)  # needy episodes first
+    order = jnp.concatenate([order, jnp.full((chunk,), b, jnp.int32)])
+
+    def body(carry):
+        i, plan = carry
+        idx = jax.lax.dynamic_slice(order, (i,), (chunk,))
+        valid = (i + jnp.arange(chunk)) < count
+        safe = jnp.where(valid, idx, 0)
+        sub = plan_fn(keys[safe], _take(states, safe), tokens[safe])
+        return i + chunk, plan.at[jnp.where(valid, idx, b)].set(sub, mode="drop")
+
+    _, plan = jax.lax.while_loop(lambda c: c[0] < count, body, (jnp.int32(0), plan))
+    return plan
 
 
 def _take(tree, idx):

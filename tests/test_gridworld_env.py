@@ -34,18 +34,18 @@ def true_tokens(grid) -> np.ndarray:
 
 
 def expected_observation(grid, agent, seen, visited):
-    """(cells int (B, H, W), features float (B, H, W, 4)) computed from scratch."""
+    """(cells int (B, H, W), features bool (B, H, W, 4)) computed from scratch."""
     b, h, w = grid.shape
     cells = np.where(seen, true_tokens(grid), grammar.UNSEEN_ID)
     agent_map = np.zeros((b, h, w), bool)
     agent_map[np.arange(b), agent[:, 0], agent[:, 1]] = True
-    features = np.stack([seen & (grid == -1), agent_map, visited, seen], -1).astype(np.float32)
+    features = np.stack([seen & (grid == -1), agent_map, visited, seen], -1)
     return cells, features
 
 
 def check_observation(obs_cells, obs_features, grid, agent, seen, visited, where=""):
     cells, features = expected_observation(grid, agent, seen, visited)
-    assert obs_cells.dtype == np.int32 and obs_features.dtype == np.float32
+    assert obs_cells.dtype == np.int8 and obs_features.dtype == np.bool_
     np.testing.assert_array_equal(obs_cells, cells, err_msg=where)
     np.testing.assert_array_equal(obs_features, features, err_msg=where)
 

@@ -223,3 +223,31 @@ def test_fresh_noise_controls_the_replan_noise(p_mo2g_episodes, fresh_noise):
     assert len(multi) > 0
     same = [np.array_equal(plans[i, 0], plans[i, 1]) for i in multi]
     assert all(same) if not fresh_noise else not any(same)
+
+
+@pytest.mark.parametrize("chunk", [1, 5, 12])
+def test_plan_subset_equals_full_batch_planning(p_mo2g_episodes, chunk):
+    """k-shot re-plans only the episodes that need it, in sub-batches: the same plans as a
+    full-batch plan where needed, the old plan elsewhere."""
+    from diffplan.planner import _plan_subset, make_planner
+
+    task = GridTask(make_config("p_mo2g"))
+    config = PlannerConfig(mode="k_shot", num_steps=2, warm_start_step=1)
+
+    def noisy_eps(params, x_t, t, tokens):  # depends on the noise, the condition and the words
+        return jnp.tanh(x_t[..., NUM_COND_CHANNELS:] * 0.5 + x_t[..., :1] * 0.01
+                        + tokens[:, :1, None, None] * 0.001)
+
+    plan_fn = make_planner(task, noisy_eps, None, SCHEDULE, config)
+    states = jax.vmap(task.reset)(p_mo2g_episodes)
+    tokens = p_mo2g_episodes.tokens
+    keys = jax.random.split(jax.random.PRNGKey(3), 12)
+    old = jnp.zeros((12, 16, 16, 2)) - 0.5
+    need = jnp.array([1, 0, 0, 1, 1, 0, 1, 0, 0, 0, 1, 1], bool)
+    full = plan_fn(keys, states, tokens)
+    got = jax.jit(lambda n: _plan_subset(plan_fn, n, keys, states, tokens, old, chunk))(need)
+    expected = jnp.where(need[:, None, None, None], full, old)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(expected), atol=1e-6)
+    none = jax.jit(lambda n: _plan_subset(plan_fn, n, keys, states, tokens, old, chunk))(
+        jnp.zeros(12, bool))
+    np.testing.assert_array_equal(np.asarray(none), np.asarray(old))

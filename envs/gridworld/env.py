@@ -51,10 +51,11 @@ class State:
 class Observation:
     """What the agent knows.
 
-    cells: int32 (H, W) token id of each cell as seen so far: grammar.UNSEEN_ID where unseen,
-      EMPTY_ID, OBSTACLE_ID, or the object's name's token id (shared with the instruction words).
-    features: float32 (H, W, NUM_FEATURES) 0/1 channels: obstacle seen, agent, visited, visible
-      (seen so far).
+    cells: int8 (H, W) token id of each cell as seen so far: grammar.UNSEEN_ID where unseen,
+      EMPTY_ID, OBSTACLE_ID, or the object's name's token id (shared with the instruction words;
+      the vocabulary has fewer than 128 words).
+    features: bool (H, W, NUM_FEATURES) channels: obstacle seen, agent, visited, visible (seen
+      so far). Narrow dtypes keep observe cheap; task.condition_from_observation casts to float32.
     """
 
     cells: jax.Array
@@ -75,6 +76,14 @@ def _on(pos, cell):
     return jnp.all(pos == cell)
 
 
+def _cell_mask(pos, size: int):
+    """bool (size, size): True at pos (int32 (2,)) only; all False if pos is off the grid.
+    A comparison with coordinates, which vectorises under vmap (a scatter does not)."""
+    rows = jnp.arange(size)[:, None]
+    cols = jnp.arange(size)[None, :]
+    return (rows == pos[0]) & (cols == pos[1])
+
+
 def reset(episode: Episode, config: GridConfig) -> State:
     """The state at t=0 of an episode."""
     size = config.size
@@ -92,43 +101,47 @@ def reset(episode: Episode, config: GridConfig) -> State:
 
 
 def step(state: State, action, config: GridConfig) -> State:
-    """One move (action int32 () in 0..3). Done states are returned unchanged."""
+    """One move (action int32 () in 0..3). Done states are returned unchanged.
+
+    Written without scatter/gather on the grid (one-hot cell masks instead) and masking each
+    update by ``~state.done`` rather than selecting between whole states, so that it vectorises
+    under vmap; the constant fields (grid, target, reference) are passed through."""
     size = config.size
+    frozen = state.done
     target_cell = state.agent + bfs.MOVES[action]
     inside = jnp.all((target_cell >= 0) & (target_cell < size))
-    clipped = jnp.clip(target_cell, 0, size - 1)
-    blocked = ~inside | (state.grid[clipped[0], clipped[1]] == OBSTACLE_CELL)
-    agent = jnp.where(blocked, state.agent, clipped)
+    # Off the grid the mask is empty: blocked by ~inside alone.
+    blocked = ~inside | jnp.any(_cell_mask(target_cell, size) & (state.grid == OBSTACLE_CELL))
+    agent = jnp.where(blocked | frozen, state.agent, target_cell)
     on_target = _on(agent, state.target)
     on_reference = config.has_reference & _on(agent, state.reference)
-    reached_reference = state.reached_reference | on_reference
-    t = state.t + 1
-    moved = State(
-        grid=state.grid, agent=agent, target=state.target, reference=state.reference,
-        seen=state.seen | field_of_view(agent, size, config.view_radius),
-        visited=state.visited.at[agent[0], agent[1]].set(True),
-        t=t, collisions=state.collisions + blocked.astype(jnp.int32),
-        reached_reference=reached_reference,
-        done=on_target | (t >= config.max_steps), success=on_target,
+    moving = ~frozen
+    t = state.t + moving.astype(jnp.int32)
+    return state.replace(
+        agent=agent,
+        seen=state.seen | (field_of_view(agent, size, config.view_radius) & moving),
+        visited=state.visited | (_cell_mask(agent, size) & moving),
+        t=t, collisions=state.collisions + (blocked & moving).astype(jnp.int32),
+        reached_reference=state.reached_reference | (on_reference & moving),
+        done=frozen | on_target | (t >= config.max_steps),
+        success=jnp.where(frozen, state.success, on_target),
     )
-    return jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
 
 
 def cell_tokens(grid):
-    """int32 (H, W) token id of every cell of a true grid (int8 (H, W))."""
-    grid = grid.astype(jnp.int32)
+    """int8 (H, W) token id of every cell of a true grid (int8 (H, W))."""
+    grid = grid.astype(jnp.int8)
     tokens = jnp.where(grid == OBSTACLE_CELL, grammar.OBSTACLE_ID, grammar.EMPTY_ID)
-    return jnp.where(grid > 0, grammar.class_to_token(grid), tokens).astype(jnp.int32)
+    return jnp.where(grid > 0, grammar.class_to_token(grid), tokens).astype(jnp.int8)
 
 
 def observe(state: State, config: GridConfig) -> Observation:
     """The agent's observation; unseen cells carry no information about the world."""
-    size = config.size
     cells = jnp.where(state.seen, cell_tokens(state.grid), grammar.UNSEEN_ID)
     obstacle = state.seen & (state.grid == OBSTACLE_CELL)
-    agent = jnp.zeros((size, size), bool).at[state.agent[0], state.agent[1]].set(True)
+    agent = _cell_mask(state.agent, config.size)
     features = jnp.stack([obstacle, agent, state.visited, state.seen], axis=-1)
-    return Observation(cells=cells.astype(jnp.int32), features=features.astype(jnp.float32))
+    return Observation(cells=cells.astype(jnp.int8), features=features)
 
 
 def done(state: State):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from envs.gridworld import bfs, grammar
@@ -65,17 +66,60 @@ def _cell_coords(size):
     return jnp.stack([rows, cols], axis=-1).astype(jnp.int32)  # (H, W, 2)
 
 
+def _threefry2x32(k1, k2, x1, x2):
+    """The Threefry-2x32 hash (20 rounds) of counters (x1, x2) under the key (k1, k2), all
+    uint32 (broadcastable) -> (uint32, uint32): jax's threefry2x32 (jax._src.prng), unrolled."""
+    rotations = ((13, 15, 26, 6), (17, 29, 16, 24))
+    ks = (k1, k2, k1 ^ k2 ^ np.uint32(0x1BD11BDA))
+    x1, x2 = x1 + ks[0], x2 + ks[1]
+    for block in range(5):
+        for r in rotations[block % 2]:
+            x1 = x1 + x2
+            x2 = x1 ^ ((x2 << np.uint32(r)) | (x2 >> np.uint32(32 - r)))
+        x1 = x1 + ks[(block + 1) % 3]
+        x2 = x2 + ks[(block + 2) % 3] + np.uint32(block + 1)
+    return x1, x2
+
+
+def _uniform(key, shape):
+    """float32 uniform in [0, 1) of a static shape: bit for bit ``jax.random.uniform(key, shape)``.
+
+    On CPU jax lowers the threefry hash as a rolled 5-step loop that XLA does not fuse; unrolled
+    (:func:`_threefry2x32`), the whole draw is one fused elementwise loop, about 10x faster
+    under vmap. This reproduces jax's partitionable threefry bits (jax_threefry_partitionable,
+    the default since jax 0.5: counter = flat index, bits = hash words XORed) and its
+    bits-to-float map; other key implementations or settings fall back to jax.random.uniform.
+    tests/test_gridworld_speed_identity.py checks the equality.
+    """
+    typed = jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key)
+    impl = str(jax.random.key_impl(key)) if typed else jax.config.jax_default_prng_impl
+    if impl != "threefry2x32" or not jax.config.jax_threefry_partitionable:
+        return jax.random.uniform(key, shape)
+    data = jax.random.key_data(key) if typed else key
+    counter = jnp.arange(np.prod(shape, dtype=int), dtype=jnp.uint32).reshape(shape)
+    hi, lo = _threefry2x32(data[0], data[1], jnp.zeros_like(counter), counter)
+    mantissa = ((hi ^ lo) >> np.uint32(9)) | np.uint32(0x3F800000)  # a float in [1, 2)
+    return jnp.maximum(0.0, jax.lax.bitcast_convert_type(mantissa, jnp.float32) - 1.0)
+
+
+def _first_argmax(values):
+    """Index (int32 ()) of the first maximum of values (N,) without NaNs: jnp.argmax, written as
+    a max and a min reduction, which XLA vectorises on CPU (its argmax reduction is scalar)."""
+    index = jnp.arange(values.shape[0], dtype=jnp.int32)
+    return jnp.min(jnp.where(values == jnp.max(values), index, values.shape[0]))
+
+
 def _choose_cell(key, allowed):
     """A uniformly random cell among allowed (bool (H, W)) -> int32 (2,)."""
     size = allowed.shape[1]
-    scores = jax.random.uniform(key, allowed.shape)
-    flat = jnp.argmax(jnp.where(allowed, scores, -1.0).ravel())
+    scores = _uniform(key, allowed.shape)
+    flat = _first_argmax(jnp.where(allowed, scores, -1.0).ravel())
     return jnp.stack([flat // size, flat % size]).astype(jnp.int32)
 
 
 def _random_subset(key, allowed, count, max_count):
     """bool (H, W): `count` (traced, <= max_count static) random cells among allowed."""
-    scores = jnp.where(allowed, jax.random.uniform(key, allowed.shape), -1.0).ravel()
+    scores = jnp.where(allowed, _uniform(key, allowed.shape), -1.0).ravel()
     _, idx = jax.lax.top_k(scores, max_count)
     take = (jnp.arange(max_count) < count) & (scores[idx] >= 0)
     return jnp.zeros(scores.shape, jnp.int32).at[idx].add(take.astype(jnp.int32)).reshape(
@@ -124,28 +168,45 @@ def _objects_grid(key, config: GridConfig, agent, target, reference):
     return grid, classes[0], reference_class
 
 
+def _goal_fields(config: GridConfig, passable, target, reference):
+    """Unit cost-to-go fields (float32 (H, W)) towards the target and, if the setting has one,
+    the reference (else None) over passable cells (bool (H, W))."""
+    to_target = bfs.cost_to_go(passable, target)
+    to_ref = bfs.cost_to_go(passable, reference) if config.has_reference else None
+    return to_target, to_ref
+
+
+def _expert_length(config: GridConfig, fields, agent, reference):
+    """Moves of the expert path given _goal_fields: float32 () (>= INF if none exists)."""
+    to_target, to_ref = fields
+    if config.has_reference:
+        return to_ref[agent[0], agent[1]] + to_target[reference[0], reference[1]]
+    return to_target[agent[0], agent[1]]
+
+
+def _expert_positions(config: GridConfig, passable, fields, agent, reference):
+    """int32 (max_steps+1, 2) positions of the expert path (see expert_path_positions) by
+    descending _goal_fields from the agent (through the reference)."""
+    to_target, to_ref = fields
+    if not config.has_reference:
+        return bfs.descend(to_target, passable, agent, config.max_steps)
+    leg1 = bfs.descend(to_ref, passable, agent, config.max_steps)
+    leg2 = bfs.descend(to_target, passable, reference, config.max_steps)
+    n1 = jnp.minimum(to_ref[agent[0], agent[1]], config.max_steps).astype(jnp.int32)
+    # Positions: leg1[0..n1], then leg2[1..]; index i >= n1 maps to leg2[i - n1].
+    idx = jnp.arange(config.max_steps + 1)
+    return jnp.where((idx <= n1)[:, None], leg1, leg2[jnp.clip(idx - n1, 0, config.max_steps)])
+
+
 def expert_path_positions(config: GridConfig, passable, agent, target, reference):
     """A shortest path agent -> reference (if the setting has one) -> target over passable
     cells (bool (H, W)): positions int32 (max_steps+1, 2) padded by repeating the end,
     length int32 () in moves (capped at max_steps), and whether it fits in max_steps."""
-    to_target = bfs.cost_to_go(passable, target)
-    if config.has_reference:
-        to_ref = bfs.cost_to_go(passable, reference)
-        d1 = to_ref[agent[0], agent[1]]
-        d2 = to_target[reference[0], reference[1]]
-        leg1 = bfs.descend(to_ref, passable, agent, config.max_steps)
-        leg2 = bfs.descend(to_target, passable, reference, config.max_steps)
-        n1 = jnp.minimum(d1, config.max_steps).astype(jnp.int32)
-        # Positions: leg1[0..n1], then leg2[1..]; index i >= n1 maps to leg2[i - n1].
-        idx = jnp.arange(config.max_steps + 1)
-        positions = jnp.where((idx <= n1)[:, None], leg1,
-                              leg2[jnp.clip(idx - n1, 0, config.max_steps)])
-        length = d1 + d2
-    else:
-        positions = bfs.descend(to_target, passable, agent, config.max_steps)
-        length = to_target[agent[0], agent[1]]
-    ok = length <= config.max_steps
-    return positions, jnp.minimum(length, config.max_steps).astype(jnp.int32), ok
+    fields = _goal_fields(config, passable, target, reference)
+    length = _expert_length(config, fields, agent, reference)
+    positions = _expert_positions(config, passable, fields, agent, reference)
+    return positions, jnp.minimum(length, config.max_steps).astype(jnp.int32), \
+        length <= config.max_steps
 
 
 def generate(key, config: GridConfig) -> Episode:
@@ -167,23 +228,24 @@ def generate(key, config: GridConfig) -> Episode:
             return jnp.zeros((size, size), bool)
         return _random_subset(k_cells, free, count, config.max_obstacles)
 
-    def layout_result(obstacles):
-        return expert_path_positions(config, ~obstacles, agent, target, reference)
-
     def cond(carry):
         # The obstacle-free fallback is always solvable (GridConfig checks max_steps), so the
         # attempt cap is only a guard.
-        return ~carry[4] & (carry[0] <= _MAX_LAYOUT_TRIES + 1)
+        return ~carry[3] & (carry[0] <= _MAX_LAYOUT_TRIES + 1)
 
     def body(carry):
-        attempt, _, _, _, _ = carry
+        # Only the distance fields are computed per attempt; the path is descended once, after
+        # the loop (under vmap every attempt of any episode runs the body for the whole batch).
+        attempt = carry[0]
         obstacles = draw_layout(jax.random.fold_in(k_obstacles, attempt), attempt)
-        positions, length, ok = layout_result(obstacles)
-        return attempt + 1, obstacles, positions, length, ok
+        fields = _goal_fields(config, ~obstacles, target, reference)
+        length = _expert_length(config, fields, agent, reference)
+        return attempt + 1, obstacles, fields, length <= config.max_steps, length
 
-    init = body((jnp.int32(0), jnp.zeros((size, size), bool),
-                 jnp.zeros((config.max_steps + 1, 2), jnp.int32), jnp.int32(0), jnp.array(False)))
-    _, obstacles, positions, length, _ = jax.lax.while_loop(cond, body, init)
+    _, obstacles, fields, _, length = jax.lax.while_loop(cond, body,
+                                                         body((jnp.int32(0), None, None, None)))
+    positions = _expert_positions(config, ~obstacles, fields, agent, reference)
+    length = jnp.minimum(length, config.max_steps).astype(jnp.int32)
 
     grid = jnp.where(obstacles, OBSTACLE_CELL, grid).astype(jnp.int8)
     if config.has_reference:

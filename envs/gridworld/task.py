@@ -33,7 +33,8 @@ PATH_CHANNEL, GOAL_CHANNEL = NUM_COND_CHANNELS, NUM_COND_CHANNELS + 1
 
 def condition_from_observation(obs: env.Observation):
     """float32 (H, W, C) condition channels from an observation."""
-    return jnp.concatenate([obs.cells[..., None].astype(jnp.float32), obs.features], axis=-1)
+    return jnp.concatenate([obs.cells[..., None].astype(jnp.float32),
+                            obs.features.astype(jnp.float32)], axis=-1)
 
 
 def goal_cell(plan, excluded=None):
