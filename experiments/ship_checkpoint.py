@@ -29,7 +29,7 @@ def _training_summary(train_dir):
     return meta, last
 
 
-def write_note(out_dir, train_dir, results, command):
+def write_note(out_dir, train_dir, results, command, remarks=()):
     meta, last = _training_summary(train_dir)
     train_config = meta.get("train_config", {})
     lines = [
@@ -46,6 +46,7 @@ def write_note(out_dir, train_dir, results, command):
         f"- training wall time: {last.get('wall_time', float('nan')) / 60:.1f} min on a 2-core "
         f"CPU (last logged loss {last.get('loss', float('nan')):.4f})",
         "- exported with: `python -m experiments.ship_checkpoint` (EMA parameters only)",
+        *[f"- {remark}" for remark in remarks],
         "",
         "## What it achieved (SR in percent, measured on executed trajectories)",
         "",
@@ -69,6 +70,9 @@ def main(argv=None):
                    help="experiment results (contract 2) to record in NOTE.md; repeatable")
     p.add_argument("--command", default="python -m experiments.compile_p_mo2g --train",
                    help="the training command recorded in NOTE.md")
+    p.add_argument("--remark", action="append", default=[],
+                   help="a sentence added to NOTE.md's 'How it was made' (e.g. what else ran "
+                        "on the machine during training); repeatable")
     p.add_argument("--overwrite", action="store_true", help="replace an existing export")
     args = p.parse_args(argv)
     from diffplan.checkpoint import export_eval_checkpoint
@@ -77,7 +81,7 @@ def main(argv=None):
     for path in args.results:
         with open(path) as f:
             results.append(json.load(f))
-    write_note(args.out, args.train_dir, results, args.command)
+    write_note(args.out, args.train_dir, results, args.command, args.remark)
     print(f"wrote {args.out} and its NOTE.md")
 
 

@@ -1,5 +1,5 @@
-"""PENDING (not collected: restore as tests/test_shipped_checkpoint.py once a checkpoint ships).
-The shipped grid-world checkpoint still loads and still performs."""
+"""The shipped grid-world checkpoint still loads and still performs (on-the-fly SR >= 90% on 64
+fresh P-MO2G episodes, measured on the executed trajectories)."""
 import dataclasses
 import os
 
