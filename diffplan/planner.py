@@ -221,11 +221,12 @@ def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes
                    num_plans=num_plans.astype(jnp.int32), first_plan=first_plan, plans=plans)
 
 
-def _plan_subset(plan_fn, need, keys, states, tokens, plan, chunk: int):
+def _plan_subset(plan_fn, need, keys, states, tokens, plan, chunk: int, warm: bool = False):
     """plan with the entries where need (bool (B,)) replaced by fresh plans, computed
     ``chunk`` episodes at a time (a while_loop over the needy ones only), so the cost follows
     the number of episodes that re-plan rather than the batch size. Each episode uses its own
-    key and state, exactly as a full-batch plan_fn would."""
+    key and state, exactly as a full-batch plan_fn would. warm: re-plan from the current plan
+    (warm start)."""
     b = need.shape[0]
     count = jnp.sum(need).astype(jnp.int32)
     order = jnp.argsort(~need, stable=True).astype(jnp.int32)  # needy episodes first
@@ -236,7 +237,8 @@ def _plan_subset(plan_fn, need, keys, states, tokens, plan, chunk: int):
         idx = jax.lax.dynamic_slice(order, (i,), (chunk,))
         valid = (i + jnp.arange(chunk)) < count
         safe = jnp.where(valid, idx, 0)
-        sub = plan_fn(keys[safe], _take(states, safe), tokens[safe])
+        sub = plan_fn(keys[safe], _take(states, safe), tokens[safe],
+                      plan[safe] if warm else None, warm)
         return i + chunk, plan.at[jnp.where(valid, idx, b)].set(sub, mode="drop")
 
     _, plan = jax.lax.while_loop(lambda c: c[0] < count, body, (jnp.int32(0), plan))
@@ -253,8 +255,8 @@ def _put(tree, idx, values):
 
 
 def rollout_stream(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes,
-                   config: PlannerConfig, num_slots: int, num_fresh: int | None = None
-                   ) -> Rollout:
+                   config: PlannerConfig, num_slots: int, num_fresh: int | None = None,
+                   plan_chunks: int = 4) -> Rollout:
     """Like :func:`rollout` for the re-planning modes, but with a pool of ``num_slots`` episode
     slots refilled as episodes end, so the work is the sum of the episodes' lengths instead of
     (number of batches) x (longest episode of a batch): a single 100-move failure no longer
@@ -264,7 +266,9 @@ def rollout_stream(task, apply_fn: Callable, params, schedule: Schedule, keys, e
     before each of its moves with key fold_in(key, move)), so the results are the same.
     Modes "on_the_fly" and "warm_start" only. In "warm_start", the first (full) plans of newly
     started episodes are made for at most ``num_fresh`` slots per move (default num_slots // 8);
-    further free slots wait for the next move.
+    further free slots wait for the next move. Re-plans are computed for the active slots only,
+    in ``plan_chunks`` sub-batches of ceil(num_slots / plan_chunks) (fewer when fewer slots are
+    active).
 
     Args: as :func:`rollout`, with keys (N,) and episodes (N, ...) for any N.
     Returns: a Rollout over the N episodes, in their order.
@@ -280,6 +284,9 @@ def rollout_stream(task, apply_fn: Callable, params, schedule: Schedule, keys, e
         raise ValueError(f"num_slots and num_fresh must be >= 1, got {slots}, {fresh_cap}")
     warm = config.mode == "warm_start"
     fresh_cap = min(fresh_cap, slots) if warm else slots
+    # Re-plans run in sub-batches of the active slots only, so a pool's tail (few episodes
+    # still running) does not pay for planning every slot.
+    chunk = max(1, -(-slots // plan_chunks))
     plan_fn = make_planner(task, apply_fn, params, schedule, config)
     t_max = task.max_steps
     v_done = jax.vmap(task.done)
@@ -348,16 +355,12 @@ def rollout_stream(task, apply_fn: Callable, params, schedule: Schedule, keys, e
                 lambda: plans[order])
             # ... and warm re-plans for the others.
             rewarm = active & ~load
-            warm_plans = jax.lax.cond(
-                jnp.any(rewarm), lambda: plan_fn(k, states, tokens, plans, True), lambda: plans)
-            plans = jnp.where(rewarm[:, None, None, None], warm_plans, plans)
+            plans = _plan_subset(plan_fn, rewarm, k, states, tokens, plans, chunk, warm=True)
             plans = plans.at[jnp.where(sub_load, order, slots)].set(full, mode="drop")
             calls = jnp.where(load & active, config.full_plan_calls,
                               jnp.where(rewarm, config.warm_plan_calls, 0))
         else:
-            new_plans = jax.lax.cond(jnp.any(active), lambda: plan_fn(k, states, tokens),
-                                     lambda: plans)
-            plans = jnp.where(active[:, None, None, None], new_plans, plans)
+            plans = _plan_subset(plan_fn, active, k, states, tokens, plans, chunk)
             calls = jnp.where(active, config.full_plan_calls, 0)
         slot_calls = slot_calls + calls
         slot_plans = slot_plans + (calls > 0)
