@@ -14,8 +14,9 @@ Modes (``PlannerConfig.mode``):
               most k plans in all.
   on_the_fly  re-plan from pure noise before every move (the paper's Algorithm 1).
   warm_start  on-the-fly, but every re-plan after the first resumes from the previous plan
-              re-noised to step ``warm_start_step`` of the ``num_steps`` schedule, so it costs
-              ``num_steps - warm_start_step`` denoiser calls instead of ``num_steps``.
+              re-noised to step ``warm_start_step`` of a ``warm_num_steps``-step schedule
+              (default: the full plan's ``num_steps``), so it costs
+              ``warm_num_steps - warm_start_step`` denoiser calls instead of ``num_steps``.
 
 Every episode uses its own PRNG key: an episode's result does not depend on what else is in the
 batch (or on how an evaluation is chunked).
@@ -40,7 +41,11 @@ class PlannerConfig:
     """How to plan (hashable; a static argument of the jitted rollout).
 
     mode: one of MODES. num_steps: denoising steps of a full plan. eta: 0 = DDIM, 1 = DDPM-like.
-    k: plans per episode in k_shot mode. warm_start_step: steps skipped by warm re-plans.
+    k: plans per episode in k_shot mode. warm_start_step: steps skipped by warm re-plans, of a
+    warm_num_steps-step sampling schedule (None = num_steps). E.g. num_steps=10,
+    warm_num_steps=2, warm_start_step=1: full plans take 10 steps; a warm re-plan re-noises the
+    previous plan to the middle of the diffusion (the second of 2 trailing timesteps) and
+    denoises it in one call.
     clip_x0: clip the predicted x0 to [-1, 1] during sampling. record_plans: also return the
     plan used at every move (memory B x T x H x W x G: for figures, small batches only).
     fresh_noise: each re-plan draws new noise (key fold_in(episode key, move)); False reuses the
@@ -54,6 +59,7 @@ class PlannerConfig:
     eta: float = 0.0
     k: int = 2
     warm_start_step: int = 8
+    warm_num_steps: int | None = None
     clip_x0: bool = True
     record_plans: bool = False
     fresh_noise: bool = True
@@ -65,10 +71,12 @@ class PlannerConfig:
             raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
         if self.k < 1:
             raise ValueError(f"k must be >= 1, got {self.k}")
-        if not 0 <= self.warm_start_step < self.num_steps:
+        if self.warm_num_steps is not None and self.warm_num_steps < 1:
+            raise ValueError(f"warm_num_steps must be >= 1, got {self.warm_num_steps}")
+        if not 0 <= self.warm_start_step < self.warm_steps:
             raise ValueError(
-                f"warm_start_step must be in 0..num_steps-1={self.num_steps - 1}, "
-                f"got {self.warm_start_step}")
+                f"warm_start_step must be in 0..{self.warm_steps - 1} (the warm schedule has "
+                f"{self.warm_steps} steps), got {self.warm_start_step}")
         if self.eta < 0:
             raise ValueError(f"eta must be >= 0, got {self.eta}")
 
@@ -78,7 +86,12 @@ class PlannerConfig:
 
     @property
     def warm_plan_calls(self) -> int:
-        return denoiser_calls(self.num_steps, self.warm_start_step)
+        return denoiser_calls(self.warm_steps, self.warm_start_step)
+
+    @property
+    def warm_steps(self) -> int:
+        """Steps of the schedule warm re-plans resume in."""
+        return self.num_steps if self.warm_num_steps is None else self.warm_num_steps
 
 
 @struct.dataclass
@@ -118,12 +131,12 @@ def make_planner(task, apply_fn: Callable, params, schedule: Schedule, config: P
 
         x_known = jnp.concatenate(
             [condition, jnp.zeros(condition.shape[:-1] + (g,), condition.dtype)], axis=-1)[None]
-        kwargs = {}
+        kwargs = dict(num_steps=config.num_steps)
         if warm:
             kwargs = dict(x_init=jnp.concatenate([condition, x_prev], axis=-1)[None],
-                          start_step=config.warm_start_step)
-        x0 = sample(denoise, schedule, key, x_known, known_mask, num_steps=config.num_steps,
-                    eta=config.eta, clip_x0=config.clip_x0, **kwargs)
+                          start_step=config.warm_start_step, num_steps=config.warm_steps)
+        x0 = sample(denoise, schedule, key, x_known, known_mask, eta=config.eta,
+                    clip_x0=config.clip_x0, **kwargs)
         return x0[0, ..., c:]
 
     def plan(keys, states, tokens, x_prev=None, warm=False):

@@ -121,6 +121,18 @@ def test_warm_start_costs_fewer_calls(p_mo2g_episodes, on_the_fly_result):
     np.testing.assert_array_equal(np.asarray(r.denoiser_calls), 2 + (np.asarray(r.steps) - 1))
 
 
+def test_warm_schedule_of_its_own(p_mo2g_episodes):
+    """warm_num_steps: full plans take num_steps calls, warm re-plans warm_num_steps minus
+    warm_start_step; the oracle planner still solves every episode."""
+    task = GridTask(make_config("p_mo2g"))
+    config = PlannerConfig(mode="warm_start", num_steps=3, warm_num_steps=2, warm_start_step=1)
+    keys = jax.random.split(jax.random.PRNGKey(0), 12)
+    r = jax.jit(lambda k, e: rollout(task, make_oracle_apply("p_mo2g"), None, SCHEDULE, k, e,
+                                     config))(keys, p_mo2g_episodes)
+    assert bool(jnp.all(r.final_state.success))
+    np.testing.assert_array_equal(np.asarray(r.denoiser_calls), 3 + (np.asarray(r.steps) - 1))
+
+
 def test_results_do_not_depend_on_batch_composition(p_mo2g_episodes, on_the_fly_result):
     half = jax.tree.map(lambda x: x[6:], p_mo2g_episodes)
     task = GridTask(make_config("p_mo2g"))
@@ -171,6 +183,12 @@ def test_planner_config_validation():
         PlannerConfig(mode="two_shot")
     with pytest.raises(ValueError, match="warm_start_step"):
         PlannerConfig(num_steps=4, warm_start_step=4)
+    with pytest.raises(ValueError, match="warm_start_step"):
+        PlannerConfig(num_steps=10, warm_num_steps=2, warm_start_step=2)
+    with pytest.raises(ValueError, match="warm_num_steps"):
+        PlannerConfig(num_steps=10, warm_num_steps=0, warm_start_step=0)
+    config = PlannerConfig(num_steps=10, warm_num_steps=2, warm_start_step=1)
+    assert (config.full_plan_calls, config.warm_plan_calls) == (10, 1)
 
 
 def test_oracle_template_positions_match_grammar():
