@@ -301,7 +301,7 @@ def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, bat
     """Runs one planning mode on the n episodes; returns (Rollout as numpy, seconds).
 
     Re-planning modes use rollout_stream with batch_size slots over calls of up to
-    2 x batch_size episodes (a slot starts the next episode as soon as its episode ends); the
+    4 x batch_size episodes (a slot starts the next episode as soon as its episode ends); the
     other modes run batches of batch_size episodes, processed in order of expert length (a
     batch's loop runs until its slowest episode ends). Episode i always uses the key
     fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), so nothing depends on the batching.
@@ -310,7 +310,7 @@ def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, bat
 
     planner_config = spec.planner_config(mode, record_plans=record_plans)
     stream = mode in STREAM_MODES and not record_plans
-    per_call = min(n, 2 * batch_size) if stream else batch_size
+    per_call = min(n, 4 * batch_size) if stream else batch_size
     run = make_rollout_fn(task, model_config, planner_config,
                           num_slots=min(batch_size, per_call) if stream else None,
                           prediction=spec.prediction)
