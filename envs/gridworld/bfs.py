@@ -90,20 +90,6 @@ def _unit_field_batch_last(passable, source):
     return jnp.where(field >= inf, INF, field).astype(jnp.float32)
 
 
-@jax.custom_batching.custom_vmap
-def _unit_field(passable, source):
-    """Unit-cost cost_to_go of one grid (bool (H, W), int32 (2,)) -> float32 (H, W). Under vmap
-    the grids are moved to the last axis and relaxed together (:func:`_unit_field_vmap`)."""
-    return _unit_field_batch_last(passable[..., None], source[:, None])[..., 0]
-
-
-@_unit_field.def_vmap
-def _unit_field_vmap(axis_size, in_batched, passable, source):
-    passable, source = _batched_args(axis_size, in_batched, (passable, source))
-    field = _unit_field_batch_last(jnp.moveaxis(passable, 0, -1), jnp.moveaxis(source, 0, -1))
-    return jnp.moveaxis(field, -1, 0), True
-
-
 def cost_to_go(passable, source, enter_cost=None):
     """Cost-to-go field towards ``source`` over passable cells.
 
@@ -155,19 +141,28 @@ def _batched_args(axis_size, in_batched, args):
             for x, batched in zip(args, in_batched)]
 
 
-@jax.custom_batching.custom_vmap
-def _cost_field(passable, source, enter_cost):
-    """cost_to_go with enter_cost of one grid -> float32 (H, W); under vmap the grids are
-    moved to the last axis and relaxed together."""
-    return _cost_field_batch_last(passable[..., None], source[:, None],
-                                  enter_cost[..., None])[..., 0]
+def _one_grid(batch_last_fn):
+    """The one-grid function of a batch-last one (every argument and the result carry the
+    grids on their last axis). Under vmap the grids are moved to the last axis and computed
+    together, so XLA vectorises across grids (a custom_vmap rule; nested vmaps nest)."""
+
+    @jax.custom_batching.custom_vmap
+    def one(*args):
+        return batch_last_fn(*(x[..., None] for x in args))[..., 0]
+
+    @one.def_vmap
+    def rule(axis_size, in_batched, *args):
+        args = _batched_args(axis_size, in_batched, args)
+        out = batch_last_fn(*(jnp.moveaxis(x, 0, -1) for x in args))
+        return jnp.moveaxis(out, -1, 0), True
+
+    return one
 
 
-@_cost_field.def_vmap
-def _cost_field_vmap(axis_size, in_batched, passable, source, enter_cost):
-    args = _batched_args(axis_size, in_batched, (passable, source, enter_cost))
-    field = _cost_field_batch_last(*(jnp.moveaxis(x, 0, -1) for x in args))
-    return jnp.moveaxis(field, -1, 0), True
+_unit_field = _one_grid(_unit_field_batch_last)
+"""Unit-cost cost_to_go of one grid: (bool (H, W), int32 (2,)) -> float32 (H, W)."""
+_cost_field = _one_grid(_cost_field_batch_last)
+"""cost_to_go of one grid with enter_cost: (bool (H, W), int32 (2,), float32 (H, W))."""
 
 
 def bfs_distance(passable, source):
