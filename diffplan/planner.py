@@ -185,6 +185,7 @@ def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes
 
     warm = config.mode == "warm_start"
     per_replan_calls = config.warm_plan_calls if warm else config.full_plan_calls
+    plan_chunk = max(1, batch // 8) if config.mode == "k_shot" else batch
 
     def needs_plan(t, states, plan, num_plans):
         active = ~v_done(states)
@@ -198,16 +199,9 @@ def rollout(task, apply_fn: Callable, params, schedule: Schedule, keys, episodes
     def body(carry):
         t, states, plan, positions, calls, num_plans, steps, plans = carry
         need = needs_plan(t, states, plan, num_plans)
-        if config.mode == "k_shot":
-            # Few episodes re-plan at once: plan only those, in sub-batches.
-            plan = _plan_subset(plan_fn, need, keys_at(t), states, tokens, plan,
-                                max(1, batch // 8))
-        else:
-            new_plan = jax.lax.cond(
-                jnp.any(need),
-                lambda: plan_fn(keys_at(t), states, tokens, plan if warm else None, warm),
-                lambda: plan)
-            plan = jnp.where(need[:, None, None, None], new_plan, plan)
+        # k-shot: few episodes re-plan at once, so plan only those, in small sub-batches.
+        plan = _plan_subset(plan_fn, need, keys_at(t), states, tokens, plan,
+                            plan_chunk, warm)
         calls = calls + need * per_replan_calls
         num_plans = num_plans + need
         if plans is not None:
