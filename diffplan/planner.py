@@ -13,9 +13,10 @@ Modes (``PlannerConfig.mode``):
   k_shot      plan at t=0 and again each time the agent reaches the current goal estimate, at
               most k plans in all.
   on_the_fly  re-plan from pure noise before every move (the paper's Algorithm 1).
-  warm_start  on-the-fly, but every re-plan after the first resumes from the previous plan
-              re-noised to step ``warm_start_step`` of a ``warm_num_steps``-step schedule
-              (default: the full plan's ``num_steps``), so it costs
+  warm_start  on-the-fly on its own ``warm_num_steps``-step schedule (default: ``num_steps``):
+              an episode's first plan denoises that schedule from pure noise
+              (``warm_num_steps`` calls); every later re-plan resumes from the previous plan
+              re-noised to its step ``warm_start_step``, so it costs
               ``warm_num_steps - warm_start_step`` denoiser calls instead of ``num_steps``.
 
 Every episode uses its own PRNG key: an episode's result does not depend on what else is in the
@@ -41,11 +42,12 @@ class PlannerConfig:
     """How to plan (hashable; a static argument of the jitted rollout).
 
     mode: one of MODES. num_steps: denoising steps of a full plan. eta: 0 = DDIM, 1 = DDPM-like.
-    k: plans per episode in k_shot mode. warm_start_step: steps skipped by warm re-plans, of a
-    warm_num_steps-step sampling schedule (None = num_steps). E.g. num_steps=10,
-    warm_num_steps=2, warm_start_step=1: full plans take 10 steps; a warm re-plan re-noises the
-    previous plan to the middle of the diffusion (the second of 2 trailing timesteps) and
-    denoises it in one call.
+    k: plans per episode in k_shot mode. warm_num_steps: the sampling schedule of warm_start
+    mode (None = num_steps): its first plan runs all of it from noise, its re-plans skip the
+    first warm_start_step steps. E.g. num_steps=10, warm_num_steps=3, warm_start_step=1: the
+    other modes plan in 10 steps; warm start plans first in 3 steps, then each re-plan
+    re-noises the previous plan to the second of 3 trailing timesteps (t ~ 66 of 100) and
+    denoises it in 2 calls.
     clip_x0: clip the predicted x0 to [-1, 1] during sampling. record_plans: also return the
     plan used at every move (memory B x T x H x W x G: for figures, small batches only).
     fresh_noise: each re-plan draws new noise (key fold_in(episode key, move)); False reuses the
@@ -81,8 +83,14 @@ class PlannerConfig:
             raise ValueError(f"eta must be >= 0, got {self.eta}")
 
     @property
+    def full_plan_steps(self) -> int:
+        """Steps of a plan from pure noise (an episode's first plan; every plan but warm
+        re-plans)."""
+        return self.warm_steps if self.mode == "warm_start" else self.num_steps
+
+    @property
     def full_plan_calls(self) -> int:
-        return denoiser_calls(self.num_steps, None)
+        return denoiser_calls(self.full_plan_steps, None)
 
     @property
     def warm_plan_calls(self) -> int:
@@ -131,7 +139,7 @@ def make_planner(task, apply_fn: Callable, params, schedule: Schedule, config: P
 
         x_known = jnp.concatenate(
             [condition, jnp.zeros(condition.shape[:-1] + (g,), condition.dtype)], axis=-1)[None]
-        kwargs = dict(num_steps=config.num_steps)
+        kwargs = dict(num_steps=config.full_plan_steps)
         if warm:
             kwargs = dict(x_init=jnp.concatenate([condition, x_prev], axis=-1)[None],
                           start_step=config.warm_start_step, num_steps=config.warm_steps)
@@ -279,124 +287,216 @@ def rollout_stream(task, apply_fn: Callable, params, schedule: Schedule, keys, e
 
     Args: as :func:`rollout`, with keys (N,) and episodes (N, ...) for any N.
     Returns: a Rollout over the N episodes, in their order.
+    The same computation in resumable pieces (to report progress between them):
+    :class:`StreamRollout`.
     """
-    if config.mode not in ("on_the_fly", "warm_start"):
-        raise ValueError(f"rollout_stream supports on_the_fly and warm_start, not {config.mode}")
-    if config.record_plans:
-        raise ValueError("record_plans is not supported by rollout_stream; use rollout")
-    n = keys.shape[0]
-    slots = int(num_slots)
-    fresh_cap = max(1, slots // 8) if num_fresh is None else int(num_fresh)
-    if slots < 1 or fresh_cap < 1:
-        raise ValueError(f"num_slots and num_fresh must be >= 1, got {slots}, {fresh_cap}")
-    warm = config.mode == "warm_start"
-    fresh_cap = min(fresh_cap, slots) if warm else slots
-    # Re-plans run in sub-batches of the active slots only, so a pool's tail (few episodes
-    # still running) does not pay for planning every slot.
-    chunk = max(1, -(-slots // plan_chunks))
-    plan_fn = make_planner(task, apply_fn, params, schedule, config)
-    t_max = task.max_steps
-    v_done = jax.vmap(task.done)
-    v_reset = jax.vmap(task.reset)
-    tokens_all = jax.vmap(task.tokens)(episodes)
+    stream = StreamRollout(task, apply_fn, schedule, config, num_slots, num_fresh, plan_chunks)
+    carry = stream.advance(params, keys, episodes, stream.start(params, keys, episodes))
+    return stream.result(carry)
 
-    # Per-slot state (placeholders for empty slots: episode 0, never recorded).
-    slot_ep = jnp.full((slots,), n, jnp.int32)  # n = empty
-    states = v_reset(_take(episodes, jnp.zeros((slots,), jnp.int32)))
-    probe_plan = jax.eval_shape(lambda: plan_fn(keys[:1], _take(states, jnp.arange(1)),
-                                                tokens_all[:1]))
-    plan_shape = probe_plan.shape[1:]
-    plans = jnp.zeros((slots,) + plan_shape, jnp.float32)
-    slot_t = jnp.zeros((slots,), jnp.int32)
-    slot_calls = jnp.zeros((slots,), jnp.int32)
-    slot_plans = jnp.zeros((slots,), jnp.int32)
 
-    final_states = v_reset(episodes)
-    start = jax.vmap(task.position)(final_states)
-    positions = jnp.broadcast_to(start[:, None, :], (n, t_max + 1, 2)).astype(jnp.int32)
-    out = dict(steps=jnp.zeros((n,), jnp.int32), calls=jnp.zeros((n,), jnp.int32),
-               num_plans=jnp.zeros((n,), jnp.int32),
-               first_plan=jnp.zeros((n,) + plan_shape, jnp.float32))
+class StreamCarry(struct.PyTreeNode):
+    """The state of a slot pool (see :class:`StreamRollout`); S slots, N episodes.
 
-    def slot_keys(slot_ep, slot_t):
-        ep_keys = keys[jnp.clip(slot_ep, 0, n - 1)]
-        return jax.vmap(jax.random.fold_in)(ep_keys, slot_t if config.fresh_noise
-                                            else jnp.zeros_like(slot_t))
+    next_ep: int32 () next episode to load.  slot_ep: int32 (S,) episode in each slot (N: empty).
+    states: task states (S, ...).  plans: float32 (S, H, W, G) each slot's current plan.
+    slot_t / slot_calls / slot_plans: int32 (S,) moves, denoiser calls, plans of each slot's
+    episode.  final_states: task states (N, ...) of retired episodes.  positions: int32
+    (N, T + 1, 2).  out: dict of per-episode results (steps, calls, num_plans (N,), first_plan
+    (N, H, W, G)).
+    """
 
-    def body(carry):
-        next_ep, slot_ep, states, plans, slot_t, slot_calls, slot_plans, final_states, \
-            positions, out = carry
-        occupied = slot_ep < n
-        # 1. Retire finished episodes.
-        finished = occupied & v_done(states)
-        write = jnp.where(finished, slot_ep, n)
-        final_states = _put(final_states, write, states)
-        out = dict(out, steps=out["steps"].at[write].set(slot_t, mode="drop"),
-                   calls=out["calls"].at[write].set(slot_calls, mode="drop"),
-                   num_plans=out["num_plans"].at[write].set(slot_plans, mode="drop"))
-        slot_ep = jnp.where(finished, n, slot_ep)
-        free = slot_ep >= n
-        # 2. Refill free slots, in episode order, at most fresh_cap of them.
-        rank = jnp.cumsum(free) - 1
-        new_ep = next_ep + rank
-        load = free & (rank < fresh_cap) & (new_ep < n)
-        slot_ep = jnp.where(load, new_ep, slot_ep)
-        next_ep = next_ep + jnp.sum(load).astype(jnp.int32)
-        loaded = v_reset(_take(episodes, jnp.clip(new_ep, 0, n - 1)))
-        states = jax.tree.map(lambda old, new: jnp.where(
-            load.reshape((-1,) + (1,) * (old.ndim - 1)), new, old), states, loaded)
-        slot_t = jnp.where(load, 0, slot_t)
-        slot_calls = jnp.where(load, 0, slot_calls)
-        slot_plans = jnp.where(load, 0, slot_plans)
-        tokens = tokens_all[jnp.clip(slot_ep, 0, n - 1)]
-        active = (slot_ep < n) & ~v_done(states)
-        k = slot_keys(slot_ep, slot_t)
-        # 3. Plan.
-        if warm:
-            # Full first plans for the newly loaded slots (a sub-batch of fresh_cap slots) ...
-            order = jnp.argsort(~load, stable=True)[:fresh_cap]
-            sub_load = load[order]
-            full = jax.lax.cond(
-                jnp.any(load),
-                lambda: plan_fn(k[order], _take(states, order), tokens[order]),
-                lambda: plans[order])
-            # ... and warm re-plans for the others.
-            rewarm = active & ~load
-            plans = _plan_subset(plan_fn, rewarm, k, states, tokens, plans, chunk, warm=True)
-            plans = plans.at[jnp.where(sub_load, order, slots)].set(full, mode="drop")
-            calls = jnp.where(load & active, config.full_plan_calls,
-                              jnp.where(rewarm, config.warm_plan_calls, 0))
-        else:
-            plans = _plan_subset(plan_fn, active, k, states, tokens, plans, chunk)
-            calls = jnp.where(active, config.full_plan_calls, 0)
-        slot_calls = slot_calls + calls
-        slot_plans = slot_plans + (calls > 0)
-        out = dict(out, first_plan=out["first_plan"].at[jnp.where(load, slot_ep, n)].set(
-            plans, mode="drop"))
-        # 4. Act.
-        actions = jax.vmap(task.psi)(states, plans)
-        stepped = jax.vmap(task.step)(states, actions)
-        states = jax.tree.map(lambda old, new: jnp.where(
-            active.reshape((-1,) + (1,) * (old.ndim - 1)), new, old), states, stepped)
-        slot_t = slot_t + active
-        pos = jax.vmap(task.position)(states)
-        row = jnp.where(active, slot_ep, n)
-        positions = positions.at[row, slot_t].set(pos, mode="drop")
-        return (next_ep, slot_ep, states, plans, slot_t, slot_calls, slot_plans, final_states,
-                positions, out)
+    next_ep: jax.Array
+    slot_ep: jax.Array
+    states: Any
+    plans: jax.Array
+    slot_t: jax.Array
+    slot_calls: jax.Array
+    slot_plans: jax.Array
+    final_states: Any
+    positions: jax.Array
+    out: dict
 
-    def cond(carry):
-        next_ep, slot_ep = carry[0], carry[1]
-        return (next_ep < n) | jnp.any(slot_ep < n)
+    @property
+    def finished(self) -> jax.Array:
+        """bool (): every episode has been run and retired."""
+        return (self.next_ep >= self.positions.shape[0]) & ~jnp.any(
+            self.slot_ep < self.positions.shape[0])
 
-    carry = (jnp.int32(0), slot_ep, states, plans, slot_t, slot_calls, slot_plans,
-             final_states, positions, out)
-    carry = jax.lax.while_loop(cond, body, carry)
-    _, _, _, _, _, _, _, final_states, positions, out = carry
-    steps = out["steps"]
-    final = jax.vmap(task.position)(final_states)
-    idx = jnp.arange(t_max + 1)[None, :]
-    positions = jnp.where((idx > steps[:, None])[..., None], final[:, None, :], positions)
-    return Rollout(final_state=final_states, positions=positions, steps=steps,
-                   done=v_done(final_states), denoiser_calls=out["calls"],
-                   num_plans=out["num_plans"], first_plan=out["first_plan"], plans=None)
+    @property
+    def episodes_retired(self) -> jax.Array:
+        """int32 (): episodes finished so far."""
+        return self.next_ep - jnp.sum(self.slot_ep < self.positions.shape[0]).astype(jnp.int32)
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamRollout:
+    """:func:`rollout_stream` split into pure, jit-able pieces, so a caller can run the pool a
+    few moves at a time (e.g. to update a progress bar) without paying a new pool's tail:
+
+        stream = StreamRollout(task, apply_fn, schedule, config, num_slots)
+        carry = stream.start(params, keys, episodes)
+        while not carry.finished:
+            carry = stream.advance(params, keys, episodes, carry, max_moves=8)
+        rollout = stream.result(carry)
+
+    gives exactly ``rollout_stream(task, apply_fn, params, schedule, keys, episodes, config,
+    num_slots)``. params, keys and episodes must be the same in every call.
+    """
+
+    task: Any
+    apply_fn: Callable
+    schedule: Schedule
+    config: PlannerConfig
+    num_slots: int
+    num_fresh: int | None = None
+    plan_chunks: int = 4
+
+    def __post_init__(self):
+        if self.config.mode not in ("on_the_fly", "warm_start"):
+            raise ValueError("rollout_stream supports on_the_fly and warm_start, not "
+                             f"{self.config.mode}")
+        if self.config.record_plans:
+            raise ValueError("record_plans is not supported by rollout_stream; use rollout")
+        if self.num_slots < 1 or self._fresh_cap < 1:
+            raise ValueError(f"num_slots and num_fresh must be >= 1, got {self.num_slots}, "
+                             f"{self.num_fresh}")
+
+    @property
+    def _warm(self) -> bool:
+        return self.config.mode == "warm_start"
+
+    @property
+    def _fresh_cap(self) -> int:
+        cap = max(1, self.num_slots // 8) if self.num_fresh is None else int(self.num_fresh)
+        return min(cap, self.num_slots) if self._warm else self.num_slots
+
+    def _plan_fn(self, params):
+        return make_planner(self.task, self.apply_fn, params, self.schedule, self.config)
+
+    def start(self, params, keys, episodes) -> StreamCarry:
+        """An empty pool over the N episodes (keys (N,), episodes (N, ...))."""
+        task, slots, n = self.task, int(self.num_slots), keys.shape[0]
+        plan_fn = self._plan_fn(params)
+        v_reset = jax.vmap(task.reset)
+        tokens_all = jax.vmap(task.tokens)(episodes)
+        # Per-slot state (placeholders for empty slots: episode 0, never recorded).
+        states = v_reset(_take(episodes, jnp.zeros((slots,), jnp.int32)))
+        plan_shape = jax.eval_shape(lambda: plan_fn(keys[:1], _take(states, jnp.arange(1)),
+                                                    tokens_all[:1])).shape[1:]
+        final_states = v_reset(episodes)
+        start = jax.vmap(task.position)(final_states)
+        positions = jnp.broadcast_to(start[:, None, :],
+                                     (n, task.max_steps + 1, 2)).astype(jnp.int32)
+        zeros = jnp.zeros((slots,), jnp.int32)
+        out = dict(steps=jnp.zeros((n,), jnp.int32), calls=jnp.zeros((n,), jnp.int32),
+                   num_plans=jnp.zeros((n,), jnp.int32),
+                   first_plan=jnp.zeros((n,) + plan_shape, jnp.float32))
+        return StreamCarry(next_ep=jnp.int32(0), slot_ep=jnp.full((slots,), n, jnp.int32),
+                           states=states, plans=jnp.zeros((slots,) + plan_shape, jnp.float32),
+                           slot_t=zeros, slot_calls=zeros, slot_plans=zeros,
+                           final_states=final_states, positions=positions, out=out)
+
+    def advance(self, params, keys, episodes, carry: StreamCarry,
+                max_moves: int | None = None) -> StreamCarry:
+        """Runs the pool for at most max_moves moves (None: until every episode is done)."""
+        task, config, slots, n = self.task, self.config, int(self.num_slots), keys.shape[0]
+        warm, fresh_cap = self._warm, self._fresh_cap
+        # Re-plans run in sub-batches of the active slots only, so a pool's tail (few episodes
+        # still running) does not pay for planning every slot.
+        chunk = max(1, -(-slots // self.plan_chunks))
+        plan_fn = self._plan_fn(params)
+        v_done = jax.vmap(task.done)
+        v_reset = jax.vmap(task.reset)
+        tokens_all = jax.vmap(task.tokens)(episodes)
+
+        def slot_keys(slot_ep, slot_t):
+            ep_keys = keys[jnp.clip(slot_ep, 0, n - 1)]
+            return jax.vmap(jax.random.fold_in)(ep_keys, slot_t if config.fresh_noise
+                                                else jnp.zeros_like(slot_t))
+
+        def body(c: StreamCarry) -> StreamCarry:
+            slot_ep, states, out, final_states = c.slot_ep, c.states, c.out, c.final_states
+            slot_t, slot_calls, slot_plans = c.slot_t, c.slot_calls, c.slot_plans
+            occupied = slot_ep < n
+            # 1. Retire finished episodes.
+            finished = occupied & v_done(states)
+            write = jnp.where(finished, slot_ep, n)
+            final_states = _put(final_states, write, states)
+            out = dict(out, steps=out["steps"].at[write].set(slot_t, mode="drop"),
+                       calls=out["calls"].at[write].set(slot_calls, mode="drop"),
+                       num_plans=out["num_plans"].at[write].set(slot_plans, mode="drop"))
+            slot_ep = jnp.where(finished, n, slot_ep)
+            free = slot_ep >= n
+            # 2. Refill free slots, in episode order, at most fresh_cap of them.
+            rank = jnp.cumsum(free) - 1
+            new_ep = c.next_ep + rank
+            load = free & (rank < fresh_cap) & (new_ep < n)
+            slot_ep = jnp.where(load, new_ep, slot_ep)
+            next_ep = c.next_ep + jnp.sum(load).astype(jnp.int32)
+            loaded = v_reset(_take(episodes, jnp.clip(new_ep, 0, n - 1)))
+            states = jax.tree.map(lambda old, new: jnp.where(
+                load.reshape((-1,) + (1,) * (old.ndim - 1)), new, old), states, loaded)
+            slot_t = jnp.where(load, 0, slot_t)
+            slot_calls = jnp.where(load, 0, slot_calls)
+            slot_plans = jnp.where(load, 0, slot_plans)
+            tokens = tokens_all[jnp.clip(slot_ep, 0, n - 1)]
+            active = (slot_ep < n) & ~v_done(states)
+            k = slot_keys(slot_ep, slot_t)
+            # 3. Plan.
+            plans = c.plans
+            if warm:
+                # Full first plans for the newly loaded slots (a sub-batch of fresh_cap
+                # slots) ...
+                order = jnp.argsort(~load, stable=True)[:fresh_cap]
+                sub_load = load[order]
+                full = jax.lax.cond(
+                    jnp.any(load),
+                    lambda: plan_fn(k[order], _take(states, order), tokens[order]),
+                    lambda: plans[order])
+                # ... and warm re-plans for the others.
+                rewarm = active & ~load
+                plans = _plan_subset(plan_fn, rewarm, k, states, tokens, plans, chunk,
+                                     warm=True)
+                plans = plans.at[jnp.where(sub_load, order, slots)].set(full, mode="drop")
+                calls = jnp.where(load & active, config.full_plan_calls,
+                                  jnp.where(rewarm, config.warm_plan_calls, 0))
+            else:
+                plans = _plan_subset(plan_fn, active, k, states, tokens, plans, chunk)
+                calls = jnp.where(active, config.full_plan_calls, 0)
+            slot_calls = slot_calls + calls
+            slot_plans = slot_plans + (calls > 0)
+            out = dict(out, first_plan=out["first_plan"].at[jnp.where(load, slot_ep, n)].set(
+                plans, mode="drop"))
+            # 4. Act.
+            actions = jax.vmap(task.psi)(states, plans)
+            stepped = jax.vmap(task.step)(states, actions)
+            states = jax.tree.map(lambda old, new: jnp.where(
+                active.reshape((-1,) + (1,) * (old.ndim - 1)), new, old), states, stepped)
+            slot_t = slot_t + active
+            pos = jax.vmap(task.position)(states)
+            row = jnp.where(active, slot_ep, n)
+            positions = c.positions.at[row, slot_t].set(pos, mode="drop")
+            return StreamCarry(next_ep=next_ep, slot_ep=slot_ep, states=states, plans=plans,
+                               slot_t=slot_t, slot_calls=slot_calls, slot_plans=slot_plans,
+                               final_states=final_states, positions=positions, out=out)
+
+        if max_moves is None:
+            return jax.lax.while_loop(lambda c: ~c.finished, body, carry)
+        _, carry = jax.lax.while_loop(lambda ic: (ic[0] < max_moves) & ~ic[1].finished,
+                                      lambda ic: (ic[0] + 1, body(ic[1])),
+                                      (jnp.int32(0), carry))
+        return carry
+
+    def result(self, carry: StreamCarry) -> Rollout:
+        """The Rollout over the N episodes of a finished pool, in their order."""
+        task = self.task
+        steps, t_max = carry.out["steps"], task.max_steps
+        final = jax.vmap(task.position)(carry.final_states)
+        idx = jnp.arange(t_max + 1)[None, :]
+        positions = jnp.where((idx > steps[:, None])[..., None], final[:, None, :],
+                              carry.positions)
+        return Rollout(final_state=carry.final_states, positions=positions, steps=steps,
+                       done=jax.vmap(task.done)(carry.final_states),
+                       denoiser_calls=carry.out["calls"], num_plans=carry.out["num_plans"],
+                       first_plan=carry.out["first_plan"], plans=None)

@@ -267,16 +267,12 @@ def checkpoint_prediction(metadata) -> str:
 STREAM_MODES = ("on_the_fly", "warm_start")
 
 
-def make_rollout_fn(task, model_config, planner_config, num_slots=None, prediction="eps"):
-    """jitted (params, keys (B,), episodes) -> Rollout for one planning mode; with num_slots,
-    the slot-refilling rollout_stream (re-planning modes). prediction "x0" converts the
-    network's x0 estimate into the noise the sampler expects."""
+def make_apply_fn(task, model_config, schedule, prediction="eps"):
+    """(params, x_t, t, tokens) -> the noise estimate the sampler expects; prediction "x0"
+    converts the network's x0 estimate into that noise."""
     from diffplan.denoiser import Denoiser
-    from diffplan.planner import rollout, rollout_stream
-    from diffplan.schedule import cosine_schedule
 
     model = Denoiser(model_config)
-    schedule = cosine_schedule(100)
 
     def apply_fn(params, x_t, t, tokens):
         out = model.apply({"params": params}, x_t, t, tokens)
@@ -286,48 +282,87 @@ def make_rollout_fn(task, model_config, planner_config, num_slots=None, predicti
         x_gen = x_t[..., task.num_cond_channels:]
         return (x_gen - jnp.sqrt(ab) * out) / jnp.sqrt(1.0 - ab)
 
-    @jax.jit
-    def run(params, keys, episodes):
-        if num_slots:
-            return rollout_stream(task, apply_fn, params, schedule, keys, episodes,
-                                  planner_config, num_slots)
-        return rollout(task, apply_fn, params, schedule, keys, episodes, planner_config)
+    return apply_fn
 
-    return run
+
+def make_rollout_fn(task, model_config, planner_config, prediction="eps"):
+    """jitted (params, keys (B,), episodes) -> Rollout of a batch of episodes (planner.rollout)."""
+    from diffplan.planner import rollout
+    from diffplan.schedule import cosine_schedule
+
+    schedule = cosine_schedule(100)
+    apply_fn = make_apply_fn(task, model_config, schedule, prediction)
+    return jax.jit(lambda params, keys, episodes: rollout(task, apply_fn, params, schedule, keys,
+                                                          episodes, planner_config))
+
+
+def make_stream_fns(task, model_config, planner_config, num_slots, prediction="eps"):
+    """(start, advance, result): planner.StreamRollout's pieces, jitted; advance runs
+    STREAM_MOVES_PER_CALL moves per call (and donates the pool it is given)."""
+    from diffplan.planner import StreamRollout
+    from diffplan.schedule import cosine_schedule
+
+    schedule = cosine_schedule(100)
+    stream = StreamRollout(task, make_apply_fn(task, model_config, schedule, prediction),
+                           schedule, planner_config, num_slots)
+    advance = jax.jit(lambda params, keys, episodes, carry: stream.advance(
+        params, keys, episodes, carry, max_moves=STREAM_MOVES_PER_CALL), donate_argnums=(3,))
+    return jax.jit(stream.start), advance, jax.jit(stream.result)
+
+
+STREAM_MOVES_PER_CALL = 5
+
+
+def _run_stream(fns, params, keys, episodes, bar):
+    """Runs a slot pool over all the episodes, updating bar after every few moves."""
+    start, advance, result = fns
+    carry = start(params, keys, episodes)
+    shown = 0
+    while True:
+        carry = advance(params, keys, episodes, carry)
+        finished, retired = jax.device_get((carry.finished, carry.episodes_retired))
+        bar.update(int(retired) - shown)
+        shown = int(retired)
+        if finished:
+            return result(carry)
 
 
 def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, batch_size,
                   progress=True, record_plans=False):
     """Runs one planning mode on the n episodes; returns (Rollout as numpy, seconds).
 
-    Re-planning modes use rollout_stream with batch_size slots over calls of up to
-    4 x batch_size episodes (a slot starts the next episode as soon as its episode ends); the
-    other modes run batches of batch_size episodes, processed in order of expert length (a
-    batch's loop runs until its slowest episode ends). Episode i always uses the key
+    Re-planning modes run all n episodes through one slot pool of batch_size slots
+    (planner.StreamRollout: a slot starts the next episode as soon as its episode ends), a few
+    moves per jitted call so that the progress bar moves; the other modes run batches of
+    batch_size episodes, processed in order of expert length (a batch's loop runs until its
+    slowest episode ends). Episode i always uses the key
     fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), so nothing depends on the batching.
     """
     from tqdm import tqdm
 
     planner_config = spec.planner_config(mode, record_plans=record_plans)
     stream = mode in STREAM_MODES and not record_plans
-    per_call = min(n, 4 * batch_size) if stream else batch_size
-    run = make_rollout_fn(task, model_config, planner_config,
-                          num_slots=min(batch_size, per_call) if stream else None,
-                          prediction=spec.prediction)
     root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
-    order = (np.arange(n) if stream
-             else np.argsort(np.asarray(episodes.expert_length), kind="stable"))
-    outs = []
     start = time.time()
     bar = tqdm(total=n, desc=f"{spec.setting} {mode}", unit="ep", disable=not progress,
                file=sys.stderr, leave=False)
-    for lo in range(0, n, per_call):
-        idx = order[lo:lo + per_call]
+    if stream:
+        fns = make_stream_fns(task, model_config, planner_config, min(batch_size, n),
+                              prediction=spec.prediction)
+        keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(n))
+        result = jax.device_get(_run_stream(fns, params, keys, episodes, bar))
+        bar.close()
+        return result, time.time() - start
+    run = make_rollout_fn(task, model_config, planner_config, prediction=spec.prediction)
+    order = np.argsort(np.asarray(episodes.expert_length), kind="stable")
+    outs = []
+    for lo in range(0, n, batch_size):
+        idx = order[lo:lo + batch_size]
         chunk = jax.tree.map(lambda x: x[idx], episodes)
         keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.asarray(idx))
-        if len(idx) < per_call and lo > 0:
+        if len(idx) < batch_size and lo > 0:
             # Pad the last call to the compiled size (padding results are dropped).
-            pad = per_call - len(idx)
+            pad = batch_size - len(idx)
             chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
             keys = jnp.concatenate([keys, keys[:pad]])
         out = jax.device_get(run(params, keys, chunk))
@@ -449,11 +484,13 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--num-steps", type=int, default=spec.num_steps,
                    help=f"denoising steps per full plan (default {spec.num_steps})")
     p.add_argument("--warm-start-step", type=int, default=spec.warm_start_step,
-                   help="steps skipped by warm-start re-plans: each costs num_steps minus this "
+                   help="steps of the warm-start schedule skipped by its re-plans: each costs "
+                        "--warm-num-steps minus this denoiser calls "
                         f"(default {spec.warm_start_step})")
     p.add_argument("--warm-num-steps", type=int, default=spec.warm_num_steps,
-                   help="steps of the schedule warm re-plans resume in (default: --num-steps); "
-                        "a warm re-plan costs this minus --warm-start-step denoiser calls")
+                   help="steps of the warm-start row's schedule (default "
+                        f"{spec.warm_num_steps or 'the --num-steps'}): its first plan runs all "
+                        "of them from noise, each re-plan resumes at --warm-start-step")
     p.add_argument("--noise", choices=("fresh", "episode"),
                    default="fresh" if spec.fresh_noise else "episode",
                    help="initial noise of re-plans: 'fresh' draws new noise at every move, "

@@ -5,6 +5,8 @@ the target is visible, else the reference's cell) and returns the exact epsilon 
 mass, so DDIM in-paints exactly that plan. With it the planner must solve every episode: this
 checks sampler + in-painting + psi + env + rollout bookkeeping together, without training.
 """
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -122,15 +124,17 @@ def test_warm_start_costs_fewer_calls(p_mo2g_episodes, on_the_fly_result):
 
 
 def test_warm_schedule_of_its_own(p_mo2g_episodes):
-    """warm_num_steps: full plans take num_steps calls, warm re-plans warm_num_steps minus
-    warm_start_step; the oracle planner still solves every episode."""
+    """warm_num_steps: warm start's first plan takes warm_num_steps calls (not num_steps), its
+    re-plans warm_num_steps minus warm_start_step; the oracle planner still solves every
+    episode."""
     task = GridTask(make_config("p_mo2g"))
-    config = PlannerConfig(mode="warm_start", num_steps=3, warm_num_steps=2, warm_start_step=1)
+    config = PlannerConfig(mode="warm_start", num_steps=5, warm_num_steps=3, warm_start_step=1)
     keys = jax.random.split(jax.random.PRNGKey(0), 12)
     r = jax.jit(lambda k, e: rollout(task, make_oracle_apply("p_mo2g"), None, SCHEDULE, k, e,
                                      config))(keys, p_mo2g_episodes)
     assert bool(jnp.all(r.final_state.success))
-    np.testing.assert_array_equal(np.asarray(r.denoiser_calls), 3 + (np.asarray(r.steps) - 1))
+    np.testing.assert_array_equal(np.asarray(r.denoiser_calls),
+                                  3 + 2 * (np.asarray(r.steps) - 1))
 
 
 def test_results_do_not_depend_on_batch_composition(p_mo2g_episodes, on_the_fly_result):
@@ -189,6 +193,8 @@ def test_planner_config_validation():
         PlannerConfig(num_steps=10, warm_num_steps=0, warm_start_step=0)
     config = PlannerConfig(num_steps=10, warm_num_steps=2, warm_start_step=1)
     assert (config.full_plan_calls, config.warm_plan_calls) == (10, 1)
+    warm = dataclasses.replace(config, mode="warm_start")
+    assert (warm.full_plan_calls, warm.warm_plan_calls) == (2, 1)
 
 
 def test_oracle_template_positions_match_grammar():
@@ -219,6 +225,32 @@ def test_stream_rollout_matches_batched_rollout(p_mo2g_episodes, mode, fresh_noi
                                   np.asarray(batched.final_state.success))
     np.testing.assert_array_equal(np.asarray(stream.final_state.collisions),
                                   np.asarray(batched.final_state.collisions))
+
+
+def test_stream_in_pieces_matches_one_stream(p_mo2g_episodes):
+    """StreamRollout run a few moves per call gives exactly rollout_stream's result."""
+    from diffplan.planner import StreamRollout, rollout_stream
+
+    task = GridTask(make_config("p_mo2g"))
+    config = PlannerConfig(mode="warm_start", num_steps=2, warm_start_step=1)
+    keys = jax.random.split(jax.random.PRNGKey(1), 12)
+    apply_fn = make_oracle_apply("p_mo2g")
+    whole = jax.jit(lambda k, e: rollout_stream(task, apply_fn, None, SCHEDULE, k, e, config,
+                                                num_slots=4))(keys, p_mo2g_episodes)
+    stream = StreamRollout(task, apply_fn, SCHEDULE, config, num_slots=4)
+    advance = jax.jit(lambda k, e, c: stream.advance(None, k, e, c, max_moves=3))
+    carry = jax.jit(stream.start)(None, keys, p_mo2g_episodes)
+    retired, calls = [], 0
+    while not bool(carry.finished):
+        carry = advance(keys, p_mo2g_episodes, carry)
+        retired.append(int(carry.episodes_retired))
+        calls += 1
+    pieces = stream.result(carry)
+    assert calls > 2 and retired == sorted(retired) and retired[-1] == 12
+    for a, b in zip(jax.tree.leaves(pieces), jax.tree.leaves(whole)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="on_the_fly and warm_start"):
+        StreamRollout(task, apply_fn, SCHEDULE, PlannerConfig(mode="one_shot"), num_slots=4)
 
 
 @pytest.mark.parametrize("fresh_noise", [True, False])
