@@ -8,11 +8,14 @@ Measures, on whatever JAX devices are present (the default backend):
     layouts when unsolvable), in episodes per second;
   * environment steps: jit(vmap(step + observe)) at each --batch-sizes, with random actions
     (pre-drawn, so no RNG in the timed loop), many steps inside one jitted lax.scan so that the
-    Python dispatch does not dominate; the observation (cell tokens and feature channels) is
-    consumed (see below) so XLA cannot drop it. Episodes that end (on the target or after
+    Python dispatch does not dominate; the observation (env.Observation: cell tokens as seen,
+    visited cells, the agent's cell) is consumed (see below) so XLA cannot drop it. Episodes that end (on the target or after
     max_steps) stay frozen; the step is branch-free, so a frozen step costs the same as a move.
     Each step's observation is XOR-folded into an accumulator of its shape (every value read
     once, as a consumer would), summed once at the end.
+  * two diagnostic rows at the largest batch: env.step alone, and step + observe + the
+    observation expanded into its binary feature channels (Observation.features: obstacle seen,
+    agent, visited, visible), the layout the planner's condition is built from.
 
 Rates are the median over --repeats timed calls (the best is also reported; the machine may be
 shared). The first call of each jitted function (compilation, or loading it from the persistent
@@ -76,9 +79,19 @@ def bench_generation(setting: str, num_episodes: int, repeats: int, seed: int):
     return row, first
 
 
-def _env_runner(config, observe: bool = True):
+ENV_MEASURES = {"observe": "env", "step": "env (step only)", "features": "env (+features)"}
+
+
+def _env_runner(config, measure: str = "observe"):
+    """jitted (state, actions (T, B)) -> (state, checksum); measure: "observe" (step + observe),
+    "step" (step alone) or "features" (step + observe + Observation.features)."""
     v_step = jax.vmap(lambda s, a: env.step(s, a, config))
-    v_observe = jax.vmap(lambda s: env.observe(s, config))
+    observe = measure != "step"
+
+    def expanded(o):
+        return (o.cells, o.features) if measure == "features" else o
+
+    v_observe = jax.vmap(lambda s: expanded(env.observe(s, config)))
 
     @jax.jit
     def run(state, actions):
@@ -106,11 +119,12 @@ def _env_runner(config, observe: bool = True):
 
 
 def bench_env(setting: str, episodes, batch_sizes, work: int, repeats: int, seed: int,
-              observe: bool = True):
+              measure: str = "observe"):
     """Rows of env steps per second at each batch size; episodes: a generated batch (tiled
-    when a batch size exceeds it). observe=False times env.step alone (a diagnostic row)."""
+    when a batch size exceeds it). measure: see _env_runner ("step" and "features" are
+    diagnostic rows, without a target)."""
     config = make_config(setting)
-    run = _env_runner(config, observe)
+    run = _env_runner(config, measure)
     reset = jax.jit(jax.vmap(lambda e: env.reset(e, config)))
     available = episodes.agent.shape[0]
     rng = np.random.default_rng(seed)
@@ -127,10 +141,12 @@ def bench_env(setting: str, episodes, batch_sizes, work: int, repeats: int, seed
         times = _timed(run, [(state, a) for a in actions[1:]])
         median = statistics.median(times)
         steps = batch * num_steps
-        target = TARGET_ENV_STEPS_PER_S if batch == TARGET_ENV_BATCH and observe else None
+        target = (TARGET_ENV_STEPS_PER_S if batch == TARGET_ENV_BATCH and measure == "observe"
+                  else None)
+        suffix = {"observe": "_observe", "step": "_only", "features": "_observe_features"}
         rows.append(dict(
-            method=f"env_step{'_observe' if observe else '_only'}_{setting}_b{batch}",
-            kind="env" if observe else "env (step only)", setting=setting,
+            method=f"env_step{suffix[measure]}_{setting}_b{batch}",
+            kind=ENV_MEASURES[measure], setting=setting,
             batch=batch, steps_per_call=num_steps, per_second=steps / median,
             best_per_second=steps / min(times), seconds_per_call=median,
             compile_seconds=compile_seconds, target=target,
@@ -193,9 +209,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "(clipped to 100..20000)")
     parser.add_argument("--repeats", type=int, default=3,
                         help="timed calls per measurement (after one warm-up call)")
-    parser.add_argument("--no-step-only", action="store_true",
-                        help="skip the diagnostic row timing env.step without observe (at the "
-                             "largest batch size)")
+    parser.add_argument("--no-diagnostics", action="store_true",
+                        help="skip the diagnostic rows (at the largest batch size): env.step "
+                             "without observe, and step + observe + the observation's feature "
+                             "channels")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--json", metavar="PATH", default=None, help="write the results here")
     parser.add_argument("--no-cache", action="store_true",
@@ -232,9 +249,10 @@ def main(argv=None) -> int:
     env_rows = bench_env(args.env_setting, env_episodes, args.batch_sizes, args.work,
                          args.repeats, args.seed)
     rows += env_rows
-    if not args.no_step_only:
-        rows += bench_env(args.env_setting, env_episodes, [max(args.batch_sizes)], args.work,
-                          args.repeats, args.seed, observe=False)
+    if not args.no_diagnostics:
+        for measure in ("step", "features"):
+            rows += bench_env(args.env_setting, env_episodes, [max(args.batch_sizes)],
+                              args.work, args.repeats, args.seed, measure=measure)
 
     device = jax.devices()[0]
     print(f"jax {jax.__version__} on {len(jax.devices())} x {device.platform} "

@@ -49,17 +49,47 @@ class State:
 
 @struct.dataclass
 class Observation:
-    """What the agent knows.
+    """What the agent knows, in compact form (2 bytes per cell plus the agent's cell; leading
+    batch axes allowed).
 
     cells: int8 (H, W) token id of each cell as seen so far: grammar.UNSEEN_ID where unseen,
       EMPTY_ID, OBSTACLE_ID, or the object's name's token id (shared with the instruction words;
       the vocabulary has fewer than 128 words).
-    features: bool (H, W, NUM_FEATURES) channels: obstacle seen, agent, visited, visible (seen
-      so far). Narrow dtypes keep observe cheap; task.condition_from_observation casts to float32.
+    visited: bool (H, W) cells stood on so far.
+    agent: int32 (2,) the agent's cell.
+
+    ``features`` expands it into the binary channels the planner sees (obstacle seen, agent,
+    visited, visible): obstacles and visibility are functions of ``cells``, so observe does not
+    materialise them (task.condition_from_observation casts everything to float32).
     """
 
     cells: jax.Array
-    features: jax.Array
+    visited: jax.Array
+    agent: jax.Array
+
+    @property
+    def visible(self) -> jax.Array:
+        """bool (..., H, W) cells seen so far."""
+        return self.cells != grammar.UNSEEN_ID
+
+    @property
+    def obstacle_seen(self) -> jax.Array:
+        """bool (..., H, W) obstacles seen so far."""
+        return self.cells == grammar.OBSTACLE_ID
+
+    @property
+    def agent_mask(self) -> jax.Array:
+        """bool (..., H, W) True at the agent's cell."""
+        h, w = self.cells.shape[-2:]
+        agent = jnp.asarray(self.agent)
+        return ((jnp.arange(h)[:, None] == agent[..., 0, None, None])
+                & (jnp.arange(w)[None, :] == agent[..., 1, None, None]))
+
+    @property
+    def features(self) -> jax.Array:
+        """bool (..., H, W, NUM_FEATURES): obstacle seen, agent, visited, visible."""
+        return jnp.stack([self.obstacle_seen, self.agent_mask, jnp.asarray(self.visited),
+                          self.visible], axis=-1)
 
 
 def field_of_view(agent, size: int, radius):
@@ -138,10 +168,7 @@ def cell_tokens(grid):
 def observe(state: State, config: GridConfig) -> Observation:
     """The agent's observation; unseen cells carry no information about the world."""
     cells = jnp.where(state.seen, cell_tokens(state.grid), grammar.UNSEEN_ID)
-    obstacle = state.seen & (state.grid == OBSTACLE_CELL)
-    agent = _cell_mask(state.agent, config.size)
-    features = jnp.stack([obstacle, agent, state.visited, state.seen], axis=-1)
-    return Observation(cells=cells.astype(jnp.int8), features=features)
+    return Observation(cells=cells.astype(jnp.int8), visited=state.visited, agent=state.agent)
 
 
 def done(state: State):

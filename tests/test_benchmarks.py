@@ -1,0 +1,52 @@
+"""The grid-world benchmark end to end on a tiny configuration (its numbers are not checked:
+speed lives in the benchmark's output, never in tests), and that it times what it says."""
+import json
+
+import numpy as np
+
+from experiments import bench_gridworld
+
+
+def test_bench_gridworld_tiny_run_writes_every_row(tmp_path):
+    out = tmp_path / "bench.json"
+    code = bench_gridworld.main(["--settings", "p_mo2g", "--episodes", "8", "--batch-sizes", "2,4",
+                                 "--work", "200", "--repeats", "1", "--json", str(out)])
+    assert code == 0
+    data = json.loads(out.read_text())
+    kinds = [(r["kind"], r["batch"]) for r in data["rows"]]
+    assert kinds == [("generation", 8), ("env", 2), ("env", 4), ("env (step only)", 4),
+                     ("env (+features)", 4)]
+    for row in data["rows"]:
+        assert row["per_second"] > 0 and row["best_per_second"] >= row["per_second"] * 0.999
+    # Targets apply to the target batch (4096) and the P-MO2G generation row only.
+    assert data["rows"][0]["target"] == bench_gridworld.TARGET_EPISODES_PER_S
+    assert all(r["target"] is None for r in data["rows"][1:])
+
+
+def test_env_runner_checksum_is_the_xor_of_every_observation():
+    """The timed loop reads every observation (so XLA cannot drop observe): its checksum equals
+    the XOR-fold of the observations computed step by step here; "features" also folds the
+    expanded feature channels."""
+    import jax
+
+    from envs.gridworld import env, episode
+    from envs.gridworld.config import make_config
+
+    config = make_config("p_mo2g")
+    eps = episode.generate_batch(jax.random.PRNGKey(3), config, 4)
+    state = jax.vmap(lambda e: env.reset(e, config))(eps)
+    actions = np.random.default_rng(0).integers(0, 4, (5, 4)).astype(np.int32)
+    expected = {"observe": None, "features": None}
+    s = state
+    for a in actions:
+        s = jax.vmap(lambda st, ac: env.step(st, ac, config))(s, a)
+        o = jax.vmap(lambda st: env.observe(st, config))(s)
+        for measure, leaves in (("observe", [o.cells, o.visited, o.agent]),
+                                ("features", [o.cells, o.features])):
+            leaves = [np.asarray(x) for x in leaves]
+            acc = expected[measure]
+            expected[measure] = leaves if acc is None else [x ^ y for x, y in zip(acc, leaves)]
+    for measure, acc in expected.items():
+        checksum = sum(int(x.astype(np.int64).sum()) for x in acc)
+        got = int(bench_gridworld._env_runner(config, measure)(state, actions)[1])
+        assert got == checksum, measure
