@@ -5,7 +5,6 @@ import os
 import subprocess
 import sys
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,34 +14,7 @@ from diffplan import checkpoint as ckpt
 from diffplan.train import Batch, TrainConfig, TrainState, checkpoint_metadata, init_train_state
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-H = W = 8
-C, G, L = 2, 2, 4
-
-
-@dataclasses.dataclass(frozen=True)
-class TinyConfig:
-    features: int = 8
-    vocab: int = 16
-
-    def to_dict(self):
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d):
-        return cls(**d)
-
-
-class TinyDenoiser(nn.Module):
-    """Stand-in with the Denoiser call signature: (B,H,W,C+G), (B,), (B,L) -> (B,H,W,G)."""
-
-    config: TinyConfig
-
-    @nn.compact
-    def __call__(self, x_t, t, tokens):
-        h = nn.Conv(self.config.features, (3, 3))(x_t)
-        h = h + nn.Embed(self.config.vocab, self.config.features)(tokens).mean(1)[:, None, None]
-        return nn.Conv(G, (3, 3))(nn.silu(h))
-
+from toy_denoiser import C, G, H, L, W, TinyConfig, TinyDenoiser
 
 CFG = TrainConfig(steps=10, batch_size=4, warmup_steps=1)
 SHAPES = Batch(jax.ShapeDtypeStruct((1, H, W, C + G), jnp.float32),

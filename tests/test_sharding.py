@@ -11,7 +11,6 @@ import os
 import subprocess
 import sys
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,56 +19,7 @@ import pytest
 from diffplan import sharding as shd
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-H = W = 8
-C, G, L = 2, 2, 4
-
-
-@dataclasses.dataclass(frozen=True)
-class TinyConfig:
-    features: int = 8
-    vocab: int = 16
-
-    def to_dict(self):
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d):
-        return cls(**d)
-
-
-class TinyDenoiser(nn.Module):
-    """Stand-in with the Denoiser call signature: (B,H,W,C+G), (B,), (B,L) -> (B,H,W,G)."""
-
-    config: TinyConfig
-
-    @nn.compact
-    def __call__(self, x_t, t, tokens):
-        f = self.config.features
-        tf = jnp.stack([jnp.sin(t / 10.0), jnp.cos(t / 10.0)], -1).astype(jnp.float32)
-        h = nn.Conv(f, (3, 3))(x_t) + (nn.Embed(self.config.vocab, f)(tokens).mean(1)
-                                       + nn.Dense(f)(tf))[:, None, None]
-        return nn.Conv(G, (3, 3))(nn.silu(h))
-
-
-def hash_uniform(key, shape):
-    """Cheap deterministic U[0, 1) numbers from a PRNG key (an integer hash of the key data and
-    the element index): toy data without threefry, which is slow to compile on CPU."""
-    kd = jax.random.key_data(key).astype(jnp.uint32).reshape(-1)
-    h = jnp.arange(int(np.prod(shape)), dtype=jnp.uint32) * jnp.uint32(0x9E3779B1) + kd[0]
-    for mult, shift in ((0x85EBCA6B, 13), (0xC2B2AE35, 16), (0x27D4EB2F, 15)):
-        h = (h ^ (h >> 16) ^ kd[1]) * jnp.uint32(mult)
-        h = h ^ (h >> shift)
-    return (h >> 8).astype(jnp.float32).reshape(shape) / float(1 << 24)
-
-
-def toy_batch_fn(key, batch_size):
-    from diffplan.train import Batch
-    u = hash_uniform(key, (batch_size, H * W + L))
-    obst = (u[:, :H * W] < 0.3).astype(jnp.float32).reshape(batch_size, H, W)
-    tok = 1 + (u[:, H * W:] * 15).astype(jnp.int32)
-    x0 = jnp.stack([jnp.where(obst > 0, 3.0, 2.0), obst, 1.0 - 2.0 * obst,
-                    -jnp.ones_like(obst)], -1)
-    return Batch(x0, tok, jnp.ones((batch_size, H, W, G), jnp.float32))
+from toy_denoiser import C, G, H, L, W, TinyConfig, TinyDenoiser, toy_batch_fn
 
 
 # ------------------------------------------------------------------------------- in-process
