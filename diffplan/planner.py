@@ -41,7 +41,8 @@ MODES = ("one_shot", "k_shot", "on_the_fly", "warm_start")
 class PlannerConfig:
     """How to plan (hashable; a static argument of the jitted rollout).
 
-    mode: one of MODES. num_steps: denoising steps of a full plan. eta: 0 = DDIM, 1 = DDPM-like.
+    mode: one of MODES. num_steps: denoising steps of a plan from noise (warm_start mode: see
+    warm_num_steps). eta: 0 = DDIM, 1 = DDPM-like.
     k: plans per episode in k_shot mode. warm_num_steps: the sampling schedule of warm_start
     mode (None = num_steps): its first plan runs all of it from noise, its re-plans skip the
     first warm_start_step steps. E.g. num_steps=10, warm_num_steps=3, warm_start_step=1: the
