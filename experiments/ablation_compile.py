@@ -5,7 +5,8 @@ Rows, as in the paper:
   + grid repr     learned cell embeddings shared with the instruction words, no g, one-shot
   + g             + the goal-estimate channel, one-shot
   + on the fly    + re-planning before every move (the main model, Algorithm 1)
-Models without g are followed by psi towards the far end of their predicted path.
+Models without g are followed by psi towards the far end of their predicted path (the path cell
+farthest along the unvisited path cells connected to the agent: envs.gridworld.task.path_end_cell).
 
 `python -m experiments.ablation_compile --help`. The "+ g" and "+ on the fly" rows use the main
 denoiser (checkpoints/compile_gridworld); the two others are trained by `--train` into

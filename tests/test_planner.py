@@ -182,6 +182,38 @@ def test_psi_follows_plan_path_when_costs_tie():
     assert int(psi(state, jnp.stack([path_south, goal], -1))) == 2  # south
 
 
+def test_path_end_cell_follows_the_connected_unvisited_path():
+    """Without a goal channel the goal is the far end of the path connected to the agent: a
+    stray path cell far away is ignored, and half way along, the visited half is excluded so
+    the agent heads on rather than back."""
+    from envs.gridworld.task import path_end_cell
+
+    path = jnp.full((16, 16), -1.0)
+    for c in range(3, 10):  # a path along row 4 from (4, 3) to (4, 9), then down to (6, 9)
+        path = path.at[4, c].set(1)
+    path = path.at[5, 9].set(1).at[6, 9].set(1).at[15, 0].set(1)  # + a stray cell
+    plan = jnp.stack([path, jnp.full((16, 16), -1.0)], -1)
+    start = jnp.array([4, 3], jnp.int32)
+    np.testing.assert_array_equal(path_end_cell(plan, start), [6, 9])
+    middle = jnp.array([4, 8], jnp.int32)
+    # Plain "farthest along the path" from past the middle picks the start's end ((4, 3) is 5
+    # moves away, (6, 9) 3); with the visited cells excluded it is (6, 9) ...
+    np.testing.assert_array_equal(path_end_cell(plan, middle), [4, 3])
+    visited = jnp.zeros((16, 16), bool).at[4, 3:9].set(True)
+    np.testing.assert_array_equal(path_end_cell(plan, middle, visited), [6, 9])
+    # ... and an agent off the path, or at its end, gets its own cell.
+    np.testing.assert_array_equal(path_end_cell(plan, jnp.array([10, 10])), [10, 10])
+    visited = visited.at[4, 9].set(True).at[5:7, 9].set(True)
+    np.testing.assert_array_equal(path_end_cell(plan, jnp.array([6, 9]), visited), [6, 9])
+    # psi of a goal-less task walks it: from the start, east.
+    config = make_config("1o1g")
+    eps = generate_batch(jax.random.PRNGKey(0), config, 1)
+    state = jax.tree.map(lambda x: x[0], jax.vmap(GridTask(config).reset)(eps))
+    state = state.replace(agent=start, grid=jnp.zeros_like(state.grid),
+                          visited=jnp.zeros((16, 16), bool).at[4, 3].set(True))
+    assert int(psi(state, plan, use_goal_channel=False)) == 1
+
+
 def test_planner_config_validation():
     with pytest.raises(ValueError, match="mode"):
         PlannerConfig(mode="two_shot")

@@ -48,16 +48,20 @@ def goal_cell(plan, excluded=None):
 
 
 def path_end_cell(plan, agent, excluded=None):
-    """int32 (2,): the plan's path cell (value > 0) farthest (Manhattan) from the agent, or the
-    agent's cell if the plan marks none: the goal of a model trained without a goal channel
-    (the paper's ablations without g)."""
+    """int32 (2,): where the plan's path leads from the agent: among the path cells (value > 0,
+    not in ``excluded``) connected to the agent's cell through such cells (4-neighbours), the
+    one farthest along them (BFS distance); the agent's cell if none. The goal of a model
+    trained without a goal channel (the paper's ablations without g). Stray path cells not
+    connected to the agent are ignored; psi excludes the visited cells too, so that an agent
+    half way along its path heads on, not back to where it came from."""
     size = plan.shape[1]
-    rows, cols = jnp.meshgrid(jnp.arange(plan.shape[0]), jnp.arange(size), indexing="ij")
-    distance = jnp.abs(rows - agent[0]) + jnp.abs(cols - agent[1])
     on_path = plan[..., 0] > 0
     if excluded is not None:
         on_path = on_path & ~excluded
-    score = jnp.where(on_path, distance, -1).ravel()
+    rows, cols = jnp.meshgrid(jnp.arange(plan.shape[0]), jnp.arange(size), indexing="ij")
+    at_agent = (rows == agent[0]) & (cols == agent[1])
+    along = bfs.bfs_distance(on_path | at_agent, agent)  # -1 where not connected
+    score = jnp.where(on_path, along, -1).ravel()
     flat = jnp.argmax(score)
     cell = jnp.stack([flat // size, flat % size]).astype(jnp.int32)
     return jnp.where(score[flat] >= 0, cell, agent.astype(jnp.int32))
@@ -76,7 +80,7 @@ def psi(state: env.State, plan, path_weight: float = 2.0, use_goal_channel: bool
     if use_goal_channel:
         goal = goal_cell(plan, known_obstacle)
     else:
-        goal = path_end_cell(plan, state.agent, known_obstacle)
+        goal = path_end_cell(plan, state.agent, known_obstacle | state.visited)
     field = bfs.cost_to_go(passable, goal, enter_cost)
     return bfs.best_move(field, passable, state.agent, enter_cost)
 
@@ -129,7 +133,8 @@ class GridTask:
         known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
         if self.use_goal_channel:
             return jnp.all(state.agent == goal_cell(plan, known_obstacle))
-        return jnp.all(state.agent == path_end_cell(plan, state.agent, known_obstacle))
+        return jnp.all(state.agent == path_end_cell(plan, state.agent,
+                                                    known_obstacle | state.visited))
 
 
 def _state_along_expert(episode: Episode, config: GridConfig, index):
