@@ -58,13 +58,21 @@ def path_end_cell(plan, agent, excluded=None):
     on_path = plan[..., 0] > 0
     if excluded is not None:
         on_path = on_path & ~excluded
-    rows, cols = jnp.meshgrid(jnp.arange(plan.shape[0]), jnp.arange(size), indexing="ij")
-    at_agent = (rows == agent[0]) & (cols == agent[1])
+    at_agent = env._cell_mask(agent, size)
     along = bfs.bfs_distance(on_path | at_agent, agent)  # -1 where not connected
     score = jnp.where(on_path, along, -1).ravel()
     flat = jnp.argmax(score)
     cell = jnp.stack([flat // size, flat % size]).astype(jnp.int32)
     return jnp.where(score[flat] >= 0, cell, agent.astype(jnp.int32))
+
+
+def goal_estimate(state: env.State, plan, use_goal_channel: bool = True):
+    """int32 (2,): the cell psi heads for: the goal channel's argmax off known obstacles, or
+    (use_goal_channel=False) the end of the unvisited path connected to the agent."""
+    known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+    if use_goal_channel:
+        return goal_cell(plan, known_obstacle)
+    return path_end_cell(plan, state.agent, known_obstacle | state.visited)
 
 
 def psi(state: env.State, plan, path_weight: float = 2.0, use_goal_channel: bool = True):
@@ -77,10 +85,7 @@ def psi(state: env.State, plan, path_weight: float = 2.0, use_goal_channel: bool
     passable = ~known_obstacle
     path01 = (jnp.clip(plan[..., 0], -1.0, 1.0) + 1.0) / 2.0
     enter_cost = 1.0 + path_weight * (1.0 - path01)
-    if use_goal_channel:
-        goal = goal_cell(plan, known_obstacle)
-    else:
-        goal = path_end_cell(plan, state.agent, known_obstacle | state.visited)
+    goal = goal_estimate(state, plan, use_goal_channel)
     field = bfs.cost_to_go(passable, goal, enter_cost)
     return bfs.best_move(field, passable, state.agent, enter_cost)
 
@@ -130,11 +135,7 @@ class GridTask:
         return state.agent
 
     def at_goal_estimate(self, state: env.State, plan):
-        known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
-        if self.use_goal_channel:
-            return jnp.all(state.agent == goal_cell(plan, known_obstacle))
-        return jnp.all(state.agent == path_end_cell(plan, state.agent,
-                                                    known_obstacle | state.visited))
+        return jnp.all(state.agent == goal_estimate(state, plan, self.use_goal_channel))
 
 
 def _state_along_expert(episode: Episode, config: GridConfig, index):
