@@ -8,13 +8,14 @@ Templates are written with three slots: ``{ref}`` (the reference object), ``{tar
 ``{dir}`` (the compass direction from the reference to the target). Each template is compiled
 once into an int32 array of token ids in which the slots are negative markers, so that the
 JAX episode generator can fill them with ``jnp.where`` (see :func:`fill_template`): instructions
-are produced inside ``jit`` as token ids and turned into text only when exported.
+are produced inside ``jit`` as token ids and turned into text only when exported. The
+vocabulary, tokenizer and template machinery are the shared ``diffplan.language``.
 """
 from __future__ import annotations
 
-import re
-
 import numpy as np
+
+from diffplan import language
 
 OBJECT_NAMES: tuple[str, ...] = (
     "apple", "carrot", "banana", "lettuce", "orange", "tomato", "grapes", "broccoli",
@@ -62,29 +63,27 @@ TEMPLATES: dict[str, tuple[str, ...]] = {
 """Template 0 of each setting is the canonical phrasing; the others are paraphrases."""
 
 SLOT_REF, SLOT_TARGET, SLOT_DIR = -1, -2, -3
-_SLOTS = {"{ref}": SLOT_REF, "{target}": SLOT_TARGET, "{dir}": SLOT_DIR}
-
-_WORD_RE = re.compile(r"\{[a-z]+\}|[a-z]+|[.,]|[^\sa-z.,]+")
+_SLOT_NAMES = ("{ref}", "{target}", "{dir}")
+"""Slot k of a template is the marker -(k + 1) (diffplan.language's convention)."""
 
 
 def split_words(text: str) -> list[str]:
     """Lower-cases and splits text into words and punctuation tokens ('.' and ','); any other
     run of characters (digits, '!', ...) becomes a word of its own (outside the vocabulary)."""
-    return _WORD_RE.findall(text.lower())
+    return language.split_words(text)
 
 
 def _build_vocab() -> tuple[str, ...]:
-    words: set[str] = set(OBJECT_NAMES) | set(DIRECTIONS)
-    for templates in TEMPLATES.values():
-        for template in templates:
-            words.update(w for w in split_words(template) if w not in _SLOTS)
+    templates = [t for ts in TEMPLATES.values() for t in ts]
+    words = set(OBJECT_NAMES) | set(DIRECTIONS) | language.template_words(templates, _SLOT_NAMES)
     # Object names first (right after the specials) so that their ids are stable and compact.
     rest = sorted(words - set(OBJECT_NAMES))
     return SPECIAL_TOKENS + OBJECT_NAMES + tuple(rest)
 
 
-VOCAB: tuple[str, ...] = _build_vocab()
-WORD_TO_ID: dict[str, int] = {w: i for i, w in enumerate(VOCAB)}
+_VOCABULARY = language.Vocabulary(_build_vocab(), num_specials=len(SPECIAL_TOKENS))
+VOCAB: tuple[str, ...] = _VOCABULARY.words
+WORD_TO_ID: dict[str, int] = _VOCABULARY.word_to_id
 OBJECT_TOKEN_OFFSET = len(SPECIAL_TOKENS)
 """Token id of object class k (1-based) is ``k - 1 + OBJECT_TOKEN_OFFSET``."""
 DIRECTION_TOKEN_IDS = np.array([WORD_TO_ID[d] for d in DIRECTIONS], np.int32)
@@ -102,24 +101,12 @@ def encode(text: str, max_tokens: int = MAX_TOKENS) -> np.ndarray:
 
     Raises ValueError naming every word outside the vocabulary, or if the text is too long.
     """
-    words = split_words(text)
-    unknown = sorted({w for w in words if w not in WORD_TO_ID or w in SPECIAL_TOKENS})
-    if unknown:
-        raise ValueError(f"instruction has words outside the vocabulary: {unknown}")
-    if len(words) > max_tokens:
-        raise ValueError(f"instruction has {len(words)} tokens, more than max_tokens={max_tokens}")
-    ids = np.zeros(max_tokens, np.int32)
-    ids[: len(words)] = [WORD_TO_ID[w] for w in words]
-    return ids
+    return _VOCABULARY.encode(text, max_tokens)
 
 
 def decode(ids) -> str:
     """int token ids (padding 0 dropped) -> text with punctuation re-attached."""
-    words = [VOCAB[int(i)] for i in np.asarray(ids).ravel() if int(i) != PAD_ID]
-    text = " ".join(words)
-    text = re.sub(r" ([.,])", r"\1", text)
-    # Capitalise the first letter of each sentence.
-    return re.sub(r"(^|[.] )([a-z])", lambda m: m.group(1) + m.group(2).upper(), text)
+    return _VOCABULARY.decode(ids)
 
 
 def compile_templates(setting: str) -> np.ndarray:
@@ -127,13 +114,8 @@ def compile_templates(setting: str) -> np.ndarray:
     markers (SLOT_REF, SLOT_TARGET, SLOT_DIR) and 0 padding."""
     if setting not in TEMPLATES:
         raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(TEMPLATES)}")
-    rows = []
-    for template in TEMPLATES[setting]:
-        words = split_words(template)
-        row = np.zeros(MAX_TOKENS, np.int32)
-        row[: len(words)] = [_SLOTS[w] if w in _SLOTS else WORD_TO_ID[w] for w in words]
-        rows.append(row)
-    return np.stack(rows)
+    return np.stack([_VOCABULARY.compile(t, _SLOT_NAMES, MAX_TOKENS)
+                     for t in TEMPLATES[setting]])
 
 
 def fill_template(template_ids, ref_class, target_class, direction):
@@ -144,19 +126,16 @@ def fill_template(template_ids, ref_class, target_class, direction):
     """
     import jax.numpy as jnp
 
-    template_ids = jnp.asarray(template_ids)
-    direction_tokens = jnp.asarray(DIRECTION_TOKEN_IDS)
-    out = jnp.where(template_ids == SLOT_REF, class_to_token(ref_class), template_ids)
-    out = jnp.where(template_ids == SLOT_TARGET, class_to_token(target_class), out)
-    out = jnp.where(template_ids == SLOT_DIR, direction_tokens[direction], out)
-    return out.astype(jnp.int32)
+    slot_tokens = jnp.stack([jnp.asarray(class_to_token(ref_class), jnp.int32),
+                             jnp.asarray(class_to_token(target_class), jnp.int32),
+                             jnp.asarray(DIRECTION_TOKEN_IDS)[direction]])
+    return language.fill_slots(template_ids, slot_tokens)
 
 
 def render(setting: str, template: int, ref_class: int, target_class: int, direction: int) -> str:
     """Plain-Python rendering of an instruction (the reference for tests and export)."""
-    text = TEMPLATES[setting][template]
-    return text.format(
-        ref=OBJECT_NAMES[ref_class - 1] if ref_class > 0 else "",
-        target=OBJECT_NAMES[target_class - 1],
-        dir=DIRECTIONS[direction] if direction >= 0 else "",
-    )
+    return language.render(TEMPLATES[setting][template], {
+        "ref": OBJECT_NAMES[ref_class - 1] if ref_class > 0 else "",
+        "target": OBJECT_NAMES[target_class - 1],
+        "dir": DIRECTIONS[direction] if direction >= 0 else "",
+    })
