@@ -1,9 +1,12 @@
-"""The planning denoiser: a conditional UNet that predicts the noise of the generated channels.
+"""The planning denoiser: a conditional UNet over the planning tensor, and a trained one ready
+to plan with (:class:`LoadedDenoiser`, :func:`load_denoiser`).
 
-Planning tensor (CONVENTIONS.md): x_t (B, H, W, C + G) float32, the C condition channels first
-(channel 0 = cell token id stored as a float, channels 1..C-1 binary features), then the G
-generated (noisy) channels. The model returns eps (B, H, W, G) for the generated channels only;
-``make_denoise_fn`` wraps it into the full-shape ``denoise_fn(x_t, t)`` the sampler expects.
+Planning tensor: x_t (B, H, W, C + G) float32, the C condition channels first (channel 0 = cell
+token id stored as a float, channels 1..C-1 binary features), then the G generated (noisy)
+channels. The model returns its prediction (B, H, W, G) for the generated channels only: the
+noise ("eps") or the clean plan ("x0"), as it was trained (``diffplan.train``).
+``make_denoise_fn`` and ``LoadedDenoiser.eps_fn`` wrap it into the full-shape
+``denoise_fn(x_t, t) -> eps`` the sampler expects, converting an x0 prediction into noise.
 
 Grid representation (``DenoiserConfig.grid_repr``):
   "embed"    -- channel 0 is rounded to an int id and looked up in the token-embedding table,
@@ -23,15 +26,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import flax.linen as nn
+from flax import struct
 
+from diffplan.schedule import Schedule
 from diffplan.text_encoder import TextEncoder
 from diffplan.unet import UNet, fast_init
 
 __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "init_params",
-           "GRID_REPRS"]
+           "GRID_REPRS", "LoadedDenoiser", "load_denoiser", "noise_from_x0", "ModuleApply"]
 
 GRID_REPRS = ("embed", "class_id")
 _TUPLE_FIELDS = ("widths", "attn_levels", "cross_attn_levels")
+PREDICTIONS = ("eps", "x0")
+"""What a network predicts for the generated channels: the noise, or the clean plan x0."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,7 +227,8 @@ def init_params(model: Denoiser, key: jax.Array, height: int = 16, width: int = 
     return fast_init(model, key, x, t, tokens)
 
 
-def make_denoise_fn(model: Denoiser, params, tokens: jax.Array
+def make_denoise_fn(model: Denoiser, params, tokens: jax.Array, prediction: str = "eps",
+                    schedule: Schedule | None = None
                     ) -> Callable[[jax.Array, jax.Array], jax.Array]:
     """Wrap the denoiser for ``diffplan.sample``.
 
@@ -228,10 +236,17 @@ def make_denoise_fn(model: Denoiser, params, tokens: jax.Array
       model: a ``Denoiser``.
       params: its variables ({"params": ...}) or the bare params tree.
       tokens: (B, L) int32 instruction tokens (B = 1 broadcasts to the plan batch).
+      prediction: what the network predicts, "eps" or "x0" (then ``schedule`` is needed to
+        turn its clean-plan estimate into the noise the sampler expects).
+      schedule: the schedule the network was trained with (prediction "x0" only).
     Returns:
       denoise_fn(x_t (B, H, W, C+G), t (B,)) -> eps (B, H, W, C+G): zeros on the C condition
-      channels, the model's prediction on the G generated channels.
+      channels, the model's noise estimate on the G generated channels.
     """
+    if prediction not in PREDICTIONS:
+        raise ValueError(f"prediction must be one of {PREDICTIONS}, got {prediction!r}")
+    if prediction == "x0" and schedule is None:
+        raise ValueError("prediction='x0' needs the schedule the model was trained with")
     variables = params if "params" in params else {"params": params}
     c = model.config.num_cond_channels
 
@@ -242,13 +257,117 @@ def make_denoise_fn(model: Denoiser, params, tokens: jax.Array
                 raise ValueError(f"tokens batch {toks.shape[0]} does not match x_t batch "
                                  f"{x_t.shape[0]}")
             toks = jnp.broadcast_to(toks, (x_t.shape[0],) + toks.shape[1:])
-        eps = model.apply(variables, x_t, t, toks)
-        zeros = jnp.zeros(x_t.shape[:-1] + (c,), eps.dtype)
-        return jnp.concatenate([zeros, eps], axis=-1)
+        out = model.apply(variables, x_t, t, toks)
+        return _sampler_eps(out, x_t, t, c, prediction, schedule)
 
     return denoise_fn
+
+
+def _sampler_eps(out, x_t, t, c: int, prediction: str, schedule):
+    """The full-shape noise estimate (zeros on the c condition channels) from a network's
+    output on the generated channels, which predicts ``prediction``."""
+    if prediction == "x0":
+        out = noise_from_x0(x_t[..., c:], out, schedule.alphas_cumprod[t])
+    return jnp.concatenate([jnp.zeros(x_t.shape[:-1] + (c,), out.dtype), out], axis=-1)
 
 
 def count_params(params) -> int:
     """Total number of scalars in a params (or variables) pytree."""
     return int(sum(np.prod(np.shape(x)) for x in jax.tree_util.tree_leaves(params)))
+
+
+# --------------------------------------------------------------------- planning with a model
+
+
+def noise_from_x0(x_gen: jax.Array, x0_hat: jax.Array, alphas_cumprod_t: jax.Array) -> jax.Array:
+    """The noise estimate implied by an x0 estimate: (x_t - sqrt(ab) x0) / sqrt(1 - ab).
+
+    x_gen, x0_hat: (B, ..., G) the noisy generated channels and the predicted clean ones;
+    alphas_cumprod_t: (B,) alpha-bar at each sample's timestep."""
+    ab = alphas_cumprod_t.reshape((-1,) + (1,) * (x_gen.ndim - 1))
+    return (x_gen - jnp.sqrt(ab) * x0_hat) / jnp.sqrt(1.0 - ab)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModuleApply:
+    """``(params, x_t, t, tokens) -> model.apply({"params": params}, x_t, t, tokens)``; hashable
+    by the module (equal modules give equal functions: one compilation serves every checkpoint
+    of the same architecture)."""
+
+    model: Any
+
+    def __call__(self, params, x_t, t, tokens):
+        return self.model.apply({"params": params}, x_t, t, tokens)
+
+
+class LoadedDenoiser(struct.PyTreeNode):
+    """Everything needed to plan with a trained denoiser (a pytree: params and schedule are
+    leaves, the rest is static).
+
+    params: the network's parameters. schedule: the diffusion schedule it was trained with.
+    apply_fn: ``(params, x_t (B, H, W, C+G), t (B,), tokens (B, L)) -> (B, H, W, G)``, the
+      network's prediction for the generated channels. prediction: what it predicts, "eps"
+      (the noise) or "x0" (the clean plan). plan_shape: (H, W, G) of the plans it makes.
+    num_cond_channels: C. model_config: the DenoiserConfig (None for other networks).
+    """
+
+    params: Any
+    schedule: Schedule
+    apply_fn: Callable = struct.field(pytree_node=False)
+    prediction: str = struct.field(pytree_node=False, default="eps")
+    plan_shape: tuple = struct.field(pytree_node=False, default=(16, 16, 2))
+    num_cond_channels: int = struct.field(pytree_node=False, default=5)
+    model_config: Any = struct.field(pytree_node=False, default=None)
+
+    def __post_init__(self):
+        if self.prediction not in PREDICTIONS:
+            raise ValueError(f"prediction must be one of {PREDICTIONS}, got "
+                             f"{self.prediction!r}")
+        if len(tuple(self.plan_shape)) != 3:
+            raise ValueError(f"plan_shape must be (H, W, G), got {self.plan_shape!r}")
+
+    @property
+    def num_gen_channels(self) -> int:
+        return int(self.plan_shape[-1])
+
+    def eps_fn(self, tokens: jax.Array) -> Callable[[jax.Array, jax.Array], jax.Array]:
+        """The ``denoise_fn(x_t (B, H, W, C+G), t (B,)) -> eps (B, H, W, C+G)`` that
+        ``diffplan.sample`` expects (zeros on the condition channels), whatever the network
+        predicts. tokens: int32 (B, L) (B = 1 broadcasts)."""
+        def denoise_fn(x_t, t):
+            toks = jnp.broadcast_to(tokens, (x_t.shape[0],) + tokens.shape[1:])
+            out = self.apply_fn(self.params, x_t, t, toks)
+            return _sampler_eps(out, x_t, t, self.num_cond_channels, self.prediction,
+                                self.schedule)
+
+        return denoise_fn
+
+
+def load_denoiser(directory: str, step: int | None = None) -> LoadedDenoiser:
+    """The trained denoiser of a checkpoint directory (a training run's or a shipped one):
+    its network, EMA parameters, schedule (the cosine schedule of the checkpoint's
+    ``train_config.num_train_timesteps``, as ``diffplan.train`` trains), prediction target and
+    plan shape (from the stored input shapes).
+
+    Raises FileNotFoundError (no checkpoint there) or ValueError (unreadable metadata, or a
+    model that is not a diffplan Denoiser)."""
+    from diffplan.checkpoint import latest_step, load_params_for_eval
+    from diffplan.schedule import cosine_schedule
+
+    if latest_step(directory) is None:
+        raise FileNotFoundError(f"no checkpoint in {directory!r}")
+    params, metadata = load_params_for_eval(directory, step=step)
+    try:
+        config = DenoiserConfig.from_dict(metadata["model_config"])
+        train_config = metadata.get("train_config", {})
+        h, w, cg = metadata["input_shapes"]["x"][1:]
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"checkpoint {directory!r} does not describe a diffplan denoiser: "
+                         f"{e}") from e
+    return LoadedDenoiser(
+        params=params, schedule=cosine_schedule(int(train_config.get("num_train_timesteps",
+                                                                     100))),
+        apply_fn=ModuleApply(Denoiser(config)),
+        prediction=train_config.get("prediction", "eps"),
+        plan_shape=(int(h), int(w), int(cg) - config.num_cond_channels),
+        num_cond_channels=config.num_cond_channels, model_config=config)

@@ -80,8 +80,7 @@ def main(argv=None):
                 cc.train_setting(spec, checkpoint, steps=args.train_steps, progress=progress,
                                  model_size=args.model_size)
         try:
-            params, model_config, metadata = cc.load_model(spec, checkpoint)
-            models[key] = (params, model_config, cc.checkpoint_prediction(metadata))
+            models[key], _ = cc.load_model(checkpoint)
         except FileNotFoundError:
             print(f"No checkpoint in {checkpoint}: run with --train.", file=sys.stderr)
             raise SystemExit(2)
@@ -93,11 +92,10 @@ def main(argv=None):
         episodes = cc.eval_episodes(base.grid_config(), args.episodes, args.seed)
         for name, fields, mode in VARIANTS:
             spec = dataclasses.replace(base, **fields)
-            params, model_config, prediction = models[spec.training_name]
-            spec = dataclasses.replace(spec, prediction=prediction)
-            rollout, seconds = cc.evaluate_mode(spec, spec.task(), params, model_config, episodes,
-                                                args.episodes, args.seed, mode, args.batch_size,
-                                                progress)
+            denoiser = models[spec.training_name]
+            rollout, seconds = cc.evaluate_mode(spec, spec.task(denoiser.num_gen_channels),
+                                                denoiser, episodes, args.seed, mode,
+                                                args.batch_size, progress)
             row = cc.metrics_row(f"{setting} {name}", rollout, episodes, seconds,
                                  base.grid_config().has_reference)
             row["setting"] = setting

@@ -8,13 +8,14 @@ executed trajectories and figures.
 Seeds: evaluation episode i of ``--seed S`` is ``episode.generate(fold_in(PRNGKey(S), i))``, the
 convention of ``envs.gridworld.export`` (so ``export --seed S`` writes the same episodes).
 Training draws its examples from ``fold_in(step_key, TRAIN_STREAM)`` keys of its own seed (see
-:func:`make_batch_fn`): a different key stream, so training never sees the evaluation episodes
+``envs.gridworld.training``): a different key stream, so training never sees the evaluation episodes
 (tests/test_compile_experiments.py checks a sample for overlap).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import sys
@@ -29,7 +30,6 @@ from diffplan.jax_cache import enable_compilation_cache
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHECKPOINT_ROOT = os.path.join(REPO_ROOT, "checkpoints")
-TRAIN_STREAM = 0x7EA1
 DEFAULT_EVAL_SEED = 1000
 ROLLOUT_STREAM = 0x9A11
 
@@ -82,9 +82,12 @@ class ExperimentSpec:
         from envs.gridworld.config import make_config
         return make_config(self.setting)
 
-    def task(self):
-        from envs.gridworld.task import GridTask
-        return GridTask(self.grid_config(), use_goal_channel=self.goal_channel)
+    def task(self, num_gen_channels: int | None = None):
+        """The setting's GridTask for a denoiser with num_gen_channels generated channels
+        (default: the current recipe's)."""
+        from envs.gridworld.task import NUM_GEN_CHANNELS, GridTask
+        return GridTask(self.grid_config(), use_goal_channel=self.goal_channel,
+                        num_gen_channels=num_gen_channels or NUM_GEN_CHANNELS)
 
     def model_config(self, size: str = "default"):
         from diffplan.denoiser import DenoiserConfig
@@ -97,10 +100,17 @@ class ExperimentSpec:
             num_cond_channels=NUM_COND_CHANNELS, num_gen_channels=NUM_GEN_CHANNELS,
             grid_repr=self.grid_repr, **MODEL_SIZES[size])
 
+    def recipe(self):
+        from envs.gridworld.training import Recipe
+        return Recipe(detour_prob=self.detour_prob, goal_loss_weight=self.goal_loss_weight,
+                      goal_channel=self.goal_channel)
+
     def train_config(self, seed: int = 0, steps: int | None = None):
         from diffplan.train import TrainConfig
         steps = self.train_steps if steps is None else steps
+        from envs.gridworld.task import NUM_GEN_CHANNELS
         return TrainConfig(seed=seed, steps=steps, batch_size=self.batch_size, lr=self.lr,
+                           num_gen_channels=NUM_GEN_CHANNELS,
                            prediction=self.prediction,
                            warmup_steps=min(self.warmup_steps, max(steps // 10, 0)),
                            num_train_timesteps=100, checkpoint_every=500,
@@ -128,10 +138,9 @@ class ExperimentSpec:
 
 
 TRAINING_NAME = "compile_gridworld"
-"""One denoiser serves the three settings: it is trained on a fixed mixture of them (each batch
-holds TRAINING_MIXTURE examples of each setting), which costs one training instead of three; the
+"""One denoiser serves the three settings: it is trained on a fixed mixture of them
+(envs.gridworld.training.TRAINING_MIXTURE), which costs one training instead of three; the
 shipped checkpoint is checkpoints/compile_gridworld and `--train` of any setting trains it."""
-TRAINING_MIXTURE = (("p_mo2g", 36), ("mo1g", 18), ("1o1g", 10))
 
 SPECS = {
     "1o1g": ExperimentSpec("1o1g", modes=("one_shot", "on_the_fly", "warm_start")),
@@ -141,68 +150,6 @@ SPECS = {
 
 
 # ----------------------------------------------------------------------------------- data
-
-def training_episode_keys(key, batch_size: int):
-    """The episode keys of one training batch: (batch_size,) keys from the TRAIN_STREAM fold
-    of the step's key (never of the form fold_in(PRNGKey(seed), i) used for evaluation)."""
-    return jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
-
-
-def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True, **example_kwargs):
-    """batch_fn(key, batch_size) -> Batch with the settings' examples in fixed proportions:
-    mixture ((setting, count), ...) gives count examples of each setting per sum(counts) (the
-    batch size must be a multiple of sum(counts)); example j of setting s comes from
-    training_episode_keys(fold_in(key, index of s), ...). example_kwargs go to make_batch_fn."""
-    from diffplan.train import Batch
-    from envs.gridworld.config import make_config
-
-    total = sum(count for _, count in mixture)
-    fns = [(make_batch_fn(make_config(setting), goal_channel, **example_kwargs), count)
-           for setting, count in mixture]
-
-    def batch_fn(key, batch_size):
-        if batch_size % total:
-            raise ValueError(f"batch size {batch_size} is not a multiple of the mixture's "
-                             f"{total} examples {mixture}")
-        scale = batch_size // total
-        parts = [fn(jax.random.fold_in(key, i), count * scale)
-                 for i, (fn, count) in enumerate(fns)]
-        return Batch(*[jnp.concatenate(xs) for xs in zip(*parts)])
-
-    return batch_fn
-
-
-def make_batch_fn(grid_config, goal_channel: bool = True, goal_loss_seen_only: bool = False,
-                  detour_prob: float = 0.0, goal_loss_weight: float = 1.0):
-    """batch_fn(key, batch_size) -> diffplan.train.Batch of grid-world training examples.
-
-    goal_channel=False trains without the goal estimate (the paper's "- g" ablation: the goal
-    channel is dropped from the loss). goal_loss_seen_only masks the goal loss to seen cells.
-    detour_prob: the share of examples whose agent left the expert path by a few random moves
-    (envs.gridworld.task.training_example). goal_loss_weight: the goal channel's weight in the
-    loss relative to the path channel's (the goal is one cell of H x W).
-    """
-    if goal_loss_weight <= 0:
-        raise ValueError(f"goal_loss_weight must be > 0, got {goal_loss_weight}")
-    if not 0 <= detour_prob <= 1:
-        raise ValueError(f"detour_prob must be in [0, 1], got {detour_prob}")
-    from diffplan.train import Batch
-    from envs.gridworld.task import training_example
-
-    def batch_fn(key, batch_size):
-        keys = training_episode_keys(key, batch_size)
-        x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None, None))(
-            keys, grid_config, detour_prob)
-        mask = jnp.ones(x0.shape[:-1] + (2,), jnp.float32)
-        goal_mask = goal_loss_weight * (seen.astype(jnp.float32) if goal_loss_seen_only
-                                        else mask[..., 1])
-        if not goal_channel:
-            goal_mask = jnp.zeros_like(goal_mask)
-        mask = mask.at[..., 1].set(goal_mask)
-        return Batch(x0=x0, tokens=tokens, loss_mask=mask)
-
-    return batch_fn
-
 
 def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
     """Evaluation episodes: episode i = generate(fold_in(PRNGKey(seed), i)). (Episode, n)."""
@@ -221,45 +168,30 @@ def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
 
 def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: int | None = None,
                   progress: bool = True, model_size: str = "default"):
-    """Trains the setting's denoiser into out_dir (resuming if it holds a checkpoint).
+    """Trains the setting's denoiser into out_dir with the grid world's training recipe
+    (envs.gridworld.training.Recipe), resuming if out_dir holds a checkpoint.
     Returns (ema params, model config, seconds)."""
     from diffplan.denoiser import Denoiser
     from diffplan.train import train
 
     model_config = spec.model_config(model_size)
-    model = Denoiser(model_config)
-    batch_fn = make_mixture_batch_fn(goal_channel=spec.goal_channel,
-                                     detour_prob=spec.detour_prob,
-                                     goal_loss_weight=spec.goal_loss_weight)
-    # Input shapes of one example (every setting's examples have the same shapes).
-    init_batch = jax.eval_shape(lambda k: make_batch_fn(spec.grid_config())(k, 1),
-                                jax.random.PRNGKey(0))
+    recipe = spec.recipe()
     start = time.time()
-    result = train(model, model_config, spec.train_config(seed, steps), batch_fn, out_dir,
-                   init_batch=init_batch, progress=progress,
-                   extra_metadata={"mixture": [list(m) for m in TRAINING_MIXTURE],
-                                   "goal_channel": spec.goal_channel,
-                                   "detour_prob": spec.detour_prob,
-                                   "goal_loss_weight": spec.goal_loss_weight,
-                                   "model_size": model_size})
+    result = train(Denoiser(model_config), model_config, spec.train_config(seed, steps),
+                   recipe.batch_fn(), out_dir, init_batch=recipe.init_batch(),
+                   progress=progress,
+                   extra_metadata={**recipe.metadata(), "model_size": model_size})
     return result.ema_params, model_config, time.time() - start
 
 
-def load_model(spec: ExperimentSpec, checkpoint_dir: str):
-    """(params, model config, metadata) of a checkpoint; clear errors when missing/mismatched."""
-    from diffplan.checkpoint import latest_step, load_params_for_eval
-    from diffplan.denoiser import DenoiserConfig
+def load_model(checkpoint_dir: str):
+    """The LoadedDenoiser of a checkpoint (diffplan.load_denoiser) and its metadata; raises
+    FileNotFoundError when there is none."""
+    from diffplan.checkpoint import read_metadata
+    from diffplan.denoiser import load_denoiser
 
-    if latest_step(checkpoint_dir) is None:
-        raise FileNotFoundError(checkpoint_dir)
-    params, metadata = load_params_for_eval(checkpoint_dir)
-    model_config = DenoiserConfig.from_dict(metadata["model_config"])
-    return params, model_config, metadata
-
-
-def checkpoint_prediction(metadata) -> str:
-    """What a checkpoint's network predicts ("eps" or "x0"), from its training config."""
-    return metadata.get("train_config", {}).get("prediction", "eps")
+    denoiser = load_denoiser(checkpoint_dir)
+    return denoiser, read_metadata(checkpoint_dir)
 
 
 # ---------------------------------------------------------------------------- evaluation
@@ -267,65 +199,40 @@ def checkpoint_prediction(metadata) -> str:
 STREAM_MODES = ("on_the_fly", "warm_start")
 
 
-def make_apply_fn(task, model_config, schedule, prediction="eps"):
-    """(params, x_t, t, tokens) -> the noise estimate the sampler expects; prediction "x0"
-    converts the network's x0 estimate into that noise."""
-    from diffplan.denoiser import Denoiser
+@functools.lru_cache(maxsize=None)
+def rollout_fn(task, num_slots: int | None = None):
+    """jitted (planner, keys (N,), episodes) -> Rollout: diffplan.rollout, or with num_slots
+    the slot pool (diffplan.rollout_stream, re-planning modes). The planner is an argument,
+    so one compilation serves every checkpoint of the same architecture and every seed.
 
-    model = Denoiser(model_config)
-
-    def apply_fn(params, x_t, t, tokens):
-        out = model.apply({"params": params}, x_t, t, tokens)
-        if prediction == "eps":
-            return out
-        ab = schedule.alphas_cumprod[t][:, None, None, None]
-        x_gen = x_t[..., task.num_cond_channels:]
-        return (x_gen - jnp.sqrt(ab) * out) / jnp.sqrt(1.0 - ab)
-
-    return apply_fn
-
-
-def make_rollout_fn(task, model_config, planner_config, prediction="eps"):
-    """jitted (params, keys (B,), episodes) -> Rollout of a batch of episodes (planner.rollout)."""
-    from diffplan.planner import rollout
-    from diffplan.schedule import cosine_schedule
-
-    schedule = cosine_schedule(100)
-    apply_fn = make_apply_fn(task, model_config, schedule, prediction)
-    return jax.jit(lambda params, keys, episodes: rollout(task, apply_fn, params, schedule, keys,
-                                                          episodes, planner_config))
-
-
-def make_stream_fn(task, model_config, planner_config, num_slots, prediction="eps"):
-    """jitted (params, keys (N,), episodes) -> Rollout of planner.rollout_stream with num_slots
-    slots (re-planning modes).
-
-    One jitted call runs the whole pool: planner.StreamRollout could run it a few moves per call
+    One jitted call runs a whole pool: diffplan.StreamRollout could run it a few moves per call
     (for a progress bar), but measured here (250 P-MO2G episodes, 64 slots) 5 moves per call
-    took 148.5 s against 92.5 s in one call, so evaluation keeps one call."""
-    from diffplan.planner import rollout_stream
-    from diffplan.schedule import cosine_schedule
+    took 148.5 s against 92.5 s in one call."""
+    from diffplan.rollouts import rollout, rollout_stream
 
-    schedule = cosine_schedule(100)
-    apply_fn = make_apply_fn(task, model_config, schedule, prediction)
-    return jax.jit(lambda params, keys, episodes: rollout_stream(
-        task, apply_fn, params, schedule, keys, episodes, planner_config, num_slots))
+    if num_slots is None:
+        return jax.jit(lambda planner, keys, episodes: rollout(task, planner, keys, episodes))
+    return jax.jit(lambda planner, keys, episodes: rollout_stream(task, planner, keys,
+                                                                  episodes, num_slots))
 
 
-def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, batch_size,
-                  progress=True, record_plans=False):
-    """Runs one planning mode on the n episodes; returns (Rollout as numpy, seconds).
+def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progress=True,
+                  record_plans=False):
+    """Runs one planning mode on the episodes (N of them); returns (Rollout as numpy, seconds).
 
-    Re-planning modes run planner.rollout_stream with batch_size slots over calls of up to
-    4 x batch_size episodes (a slot starts the next episode as soon as its episode ends; the
-    progress bar moves once per call); the other modes run batches of batch_size episodes,
-    processed in order of expert length (a batch's loop runs until its slowest episode ends).
-    Episode i always uses the key fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), so
-    nothing depends on the batching.
+    Re-planning modes run the slot pool (diffplan.rollout_stream) with batch_size slots over
+    calls of up to 4 x batch_size episodes (a slot starts the next episode as soon as its
+    episode ends; the progress bar moves once per call); the other modes run batches of
+    batch_size episodes, processed in order of expert length (a batch's loop runs until its
+    slowest episode ends). Episode i always uses the key fold_in(fold_in(PRNGKey(seed),
+    ROLLOUT_STREAM), i), so nothing depends on the batching.
     """
     from tqdm import tqdm
 
-    planner_config = spec.planner_config(mode, record_plans=record_plans)
+    from diffplan.planner import Planner
+
+    n = int(np.shape(episodes.tokens)[0])
+    planner = Planner(denoiser, spec.planner_config(mode, record_plans=record_plans))
     stream = mode in STREAM_MODES and not record_plans
     root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
     start = time.time()
@@ -333,11 +240,10 @@ def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, bat
                file=sys.stderr, leave=False)
     per_call = min(n, 4 * batch_size) if stream else batch_size
     if stream:
-        run = make_stream_fn(task, model_config, planner_config, min(batch_size, per_call),
-                             prediction=spec.prediction)
+        run = rollout_fn(task, min(batch_size, per_call))
         order = np.arange(n)
     else:
-        run = make_rollout_fn(task, model_config, planner_config, prediction=spec.prediction)
+        run = rollout_fn(task)
         order = np.argsort(np.asarray(episodes.expert_length), kind="stable")
     outs = []
     for lo in range(0, n, per_call):
@@ -349,7 +255,7 @@ def evaluate_mode(spec, task, params, model_config, episodes, n, seed, mode, bat
             pad = per_call - len(idx)
             chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
             keys = jnp.concatenate([keys, keys[:pad]])
-        out = jax.device_get(run(params, keys, chunk))
+        out = jax.device_get(run(planner, keys, chunk))
         outs.append(jax.tree.map(lambda x: x[:len(idx)], out))
         bar.update(len(idx))
     bar.close()
@@ -527,30 +433,26 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     train_seconds = None
     if args.train:
         spec = dataclasses.replace(spec, prediction=args.prediction)
-        train_dir = args.train_dir or spec.default_train_dir()
-        params, model_config, train_seconds = train_setting(
-            spec, train_dir, seed=args.train_seed, steps=args.train_steps, progress=progress,
+        checkpoint = args.train_dir or spec.default_train_dir()
+        _, _, train_seconds = train_setting(
+            spec, checkpoint, seed=args.train_seed, steps=args.train_steps, progress=progress,
             model_size=args.model_size)
-        checkpoint = train_dir
-        metadata = {"trained_now": True}
     else:
         checkpoint = args.checkpoint or spec.default_checkpoint()
-        try:
-            params, model_config, metadata = load_model(spec, checkpoint)
-        except FileNotFoundError:
-            print(f"No checkpoint in {checkpoint}: train one with `python -m experiments."
-                  f"{spec.name} --train` (or pass --checkpoint DIR).", file=sys.stderr)
-            raise SystemExit(2)
-        spec = dataclasses.replace(spec, prediction=checkpoint_prediction(metadata))
+    try:
+        denoiser, _ = load_model(checkpoint)
+    except FileNotFoundError:
+        print(f"No checkpoint in {checkpoint}: train one with `python -m experiments."
+              f"{spec.name} --train` (or pass --checkpoint DIR).", file=sys.stderr)
+        raise SystemExit(2)
 
     grid_config = spec.grid_config()
-    task = spec.task()
+    task = spec.task(denoiser.num_gen_channels)
     episodes = eval_episodes(grid_config, args.episodes, args.seed)
     rows, rollouts = [], {}
     for mode in modes:
-        rollout_np, seconds = evaluate_mode(spec, task, params, model_config, episodes,
-                                            args.episodes, args.seed, mode, args.batch_size,
-                                            progress)
+        rollout_np, seconds = evaluate_mode(spec, task, denoiser, episodes, args.seed, mode,
+                                            args.batch_size, progress)
         rows.append(metrics_row(METHOD_NAMES[mode], rollout_np, episodes, seconds,
                                 grid_config.has_reference))
         rollouts[mode] = rollout_np
@@ -585,7 +487,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         print(f"wrote {args.trajectories} ({METHOD_NAMES[main_mode]} trajectories)")
     if args.figures:
         from experiments.compile_figures import write_figures
-        paths = write_figures(args.figures, spec, task, params, model_config, episodes,
-                              args.seed, min(args.num_figures, args.episodes))
+        paths = write_figures(args.figures, spec, task, denoiser, episodes, args.seed,
+                              min(args.num_figures, args.episodes))
         print(f"wrote {len(paths)} figures to {args.figures}")
     return result

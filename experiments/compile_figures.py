@@ -16,7 +16,7 @@ def _replan_moments(steps: int, count: int = 4):
     return sorted(set(int(round(x)) for x in np.linspace(0, steps - 1, count)))
 
 
-def write_figures(out_dir, spec, task, params, model_config, episodes, seed, count):
+def write_figures(out_dir, spec, task, denoiser, episodes, seed, count):
     """Runs the main planning mode on the first `count` episodes with plans recorded and
     writes one PNG per episode. Returns the written paths."""
     import matplotlib
@@ -28,8 +28,8 @@ def write_figures(out_dir, spec, task, params, model_config, episodes, seed, cou
 
     os.makedirs(out_dir, exist_ok=True)
     subset = jax.tree.map(lambda x: x[:count], episodes)
-    rollout, _ = evaluate_mode(spec, task, params, model_config, subset, count, seed,
-                               spec.main_mode, count, progress=False, record_plans=True)
+    rollout, _ = evaluate_mode(spec, task, denoiser, subset, seed, spec.main_mode, count,
+                               progress=False, record_plans=True)
     grid_config = task.config
     paths = []
     for i in range(count):

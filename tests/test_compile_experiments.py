@@ -100,6 +100,7 @@ def test_evaluation_episodes_are_disjoint_from_training():
     """Training draws its episodes from its own key stream: even with the same seed for both,
     no evaluation episode is among the training episodes of the first steps."""
     from diffplan.train import step_key
+    from envs.gridworld.training import training_episode_keys
     from envs.gridworld.episode import generate
 
     grid_config = cc.SPECS["p_mo2g"].grid_config()
@@ -112,7 +113,7 @@ def test_evaluation_episodes_are_disjoint_from_training():
 
     train_prints = set()
     for step in range(4):
-        keys = cc.training_episode_keys(step_key(0, step), 128)
+        keys = training_episode_keys(step_key(0, step), 128)
         train_prints |= fingerprints(gen(keys, grid_config))
     assert len(train_prints) == 512  # distinct episodes
     assert not (train_prints & fingerprints(eval_eps))
@@ -140,9 +141,9 @@ def test_ship_checkpoint_writes_a_loadable_export_with_its_note(tiny_run, tmp_pa
                           "--results", str(out / "r.json")])
     note = (dest / "NOTE.md").read_text()
     assert "--train" in note and "seed" in note and "on-the-fly" in note
-    params, model_config, _ = cc.load_model(cc.SPECS["p_mo2g"], str(dest))
-    assert model_config == cc.SPECS["p_mo2g"].model_config("tiny")
-    assert jax.tree.leaves(params)
+    denoiser, _ = cc.load_model(str(dest))
+    assert denoiser.model_config == cc.SPECS["p_mo2g"].model_config("tiny")
+    assert jax.tree.leaves(denoiser.params)
 
 
 def test_x0_prediction_trains_and_evaluates(tmp_path):
@@ -153,8 +154,8 @@ def test_x0_prediction_trains_and_evaluates(tmp_path):
                                 "--warm-start-step", "1", "--modes", "on_the_fly",
                                 "--no-progress"])
     assert result["rows"][0]["denoiser_calls_per_episode"] > 0
-    _, _, metadata = cc.load_model(cc.SPECS["p_mo2g"], str(tmp_path / "x0"))
-    assert cc.checkpoint_prediction(metadata) == "x0"
+    denoiser, _ = cc.load_model(str(tmp_path / "x0"))
+    assert denoiser.prediction == "x0"
 
 
 def test_ablation_runs_every_row_on_a_tiny_configuration(tiny_run, tmp_path):
@@ -173,5 +174,6 @@ def test_ablation_runs_every_row_on_a_tiny_configuration(tiny_run, tmp_path):
     with open(tmp_path / "ablation.json") as f:
         assert json.load(f)["experiment"] == "ablation_compile"
     # The no-g models were trained without the goal loss, with their own grid representation.
-    _, config, meta = cc.load_model(cc.SPECS["mo1g"], str(tmp_path / "compile_gridworld_class_id_no_goal"))
-    assert config.grid_repr == "class_id" and meta["extra"]["goal_channel"] is False
+    denoiser, meta = cc.load_model(str(tmp_path / "compile_gridworld_class_id_no_goal"))
+    assert denoiser.model_config.grid_repr == "class_id"
+    assert meta["extra"]["goal_channel"] is False

@@ -14,7 +14,8 @@ from test_gridworld_bfs import oracle_bfs
 from envs.gridworld import grammar
 from envs.gridworld.config import make_config
 from envs.gridworld.episode import OBSTACLE_CELL, generate
-from envs.gridworld.task import (GOAL_CHANNEL, PATH_CHANNEL, training_example)
+from envs.gridworld.task import GOAL_CHANNEL, PATH_CHANNEL, SUBGOAL_CHANNEL
+from envs.gridworld.training import training_example
 
 BATCH = 24
 
@@ -69,6 +70,9 @@ def test_path_target_is_a_shortest_path_through_the_reference(examples_fn, seed)
             visited = x[..., 3] > 0
             assert visited[agent]
             reached = visited[reference]
+            # The sub-goal: the reference until the agent has stood on it, then the target.
+            subgoal = np.argwhere(x[..., SUBGOAL_CHANNEL] > 0)
+            assert subgoal.tolist() == [list(target if reached else reference)]
             # Shortest: number of path cells - 1 equals the oracle's distance.
             d_target = oracle_bfs(passable, target)
             if reached:

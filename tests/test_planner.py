@@ -6,13 +6,14 @@ mass, so DDIM in-paints exactly that plan. With it the planner must solve every 
 checks sampler + in-painting + psi + env + rollout bookkeeping together, without training.
 """
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffplan.planner import PlannerConfig, rollout
+from diffplan import LoadedDenoiser, Planner, PlannerConfig, rollout
 from diffplan.schedule import cosine_schedule
 from envs.gridworld import bfs, grammar
 from envs.gridworld.config import make_config
@@ -25,32 +26,49 @@ VISITED_CHANNEL = 3  # condition channels: cell id, obstacle, agent, visited, vi
 P_MO2G_REF_POS, P_MO2G_TARGET_POS, MO1G_TARGET_POS = 5, 14, 3
 
 
-def _oracle_plan(cells, visited, tokens, setting):
-    """(H, W, 2) plan in [-1, 1]: goal at the reference until it was visited, then at the
-    target (visible by then: it lies within the view radius of the reference)."""
+def _oracle_plan(cells, visited, tokens, setting, num_gen_channels=3):
+    """(H, W, G) plan in [-1, 1]: the sub-goal at the reference until it was visited, then at
+    the target (visible by then: it lies within the view radius of the reference); the goal
+    at the target once visible (before: at the reference). G = 2: the goal alone, at the
+    sub-goal's cell."""
     if setting == "p_mo2g":
         target_tok, ref_tok = tokens[P_MO2G_TARGET_POS], tokens[P_MO2G_REF_POS]
-        reference = cells == ref_tok
-        goal = jnp.where(jnp.any(reference & visited), cells == target_tok, reference)
+        reference, target = cells == ref_tok, cells == target_tok
+        subgoal = jnp.where(jnp.any(reference & visited), target, reference)
+        goal = jnp.where(jnp.any(target), target, reference)
     else:
-        goal = cells == tokens[MO1G_TARGET_POS]
-    goal = goal.astype(jnp.float32) * 2 - 1
-    path = -jnp.ones_like(goal)
-    return jnp.stack([path, goal], axis=-1)
+        subgoal = goal = cells == tokens[MO1G_TARGET_POS]
+    signed = lambda m: m.astype(jnp.float32) * 2 - 1  # noqa: E731
+    path = -jnp.ones(cells.shape, jnp.float32)
+    if num_gen_channels == 2:
+        return jnp.stack([path, signed(subgoal)], axis=-1)
+    return jnp.stack([path, signed(goal), signed(subgoal)], axis=-1)
 
 
-def make_oracle_apply(setting):
-    alphas_cumprod = SCHEDULE.alphas_cumprod
+@functools.lru_cache(maxsize=None)
+def oracle_apply(setting, num_gen_channels=3):
+    """An "x0 network" that knows the right plan from the observation alone."""
 
     def apply_fn(params, x_t, t, tokens):
-        del params
+        del params, t
         cells = jnp.round(x_t[..., 0]).astype(jnp.int32)
         visited = x_t[..., VISITED_CHANNEL] > 0.5
-        x0 = jax.vmap(lambda c, v, tok: _oracle_plan(c, v, tok, setting))(cells, visited, tokens)
-        ab = alphas_cumprod[t][:, None, None, None]
-        return (x_t[..., NUM_COND_CHANNELS:] - jnp.sqrt(ab) * x0) / jnp.sqrt(1 - ab)
+        return jax.vmap(lambda c, v, tok: _oracle_plan(c, v, tok, setting, num_gen_channels))(
+            cells, visited, tokens)
 
     return apply_fn
+
+
+def as_denoiser(apply_fn, prediction="eps", num_gen_channels=3):
+    """A LoadedDenoiser around a parameter-free network (params None)."""
+    return LoadedDenoiser(params=None, schedule=SCHEDULE, apply_fn=apply_fn,
+                          prediction=prediction, plan_shape=(16, 16, num_gen_channels),
+                          num_cond_channels=NUM_COND_CHANNELS)
+
+
+def oracle_planner(setting, config, num_gen_channels=3):
+    return Planner(as_denoiser(oracle_apply(setting, num_gen_channels), "x0",
+                               num_gen_channels), config)
 
 
 @pytest.fixture(scope="module")
@@ -60,11 +78,10 @@ def p_mo2g_episodes():
 
 def _run(setting, episodes, mode, **kw):
     task = GridTask(make_config(setting))
-    config = PlannerConfig(mode=mode, num_steps=2, warm_start_step=1, **kw)
+    config = PlannerConfig(mode=mode, num_steps=2, warm_start_step=1, warm_num_steps=None, **kw)
     keys = jax.random.split(jax.random.PRNGKey(0), episodes.tokens.shape[0])
-    run = jax.jit(lambda k, e: rollout(task, make_oracle_apply(setting), None, SCHEDULE, k, e,
-                                       config))
-    return run(keys, episodes)
+    run = jax.jit(lambda p, k, e: rollout(task, p, k, e))
+    return run(oracle_planner(setting, config), keys, episodes)
 
 
 @pytest.fixture(scope="module")
@@ -130,8 +147,8 @@ def test_warm_schedule_of_its_own(p_mo2g_episodes):
     task = GridTask(make_config("p_mo2g"))
     config = PlannerConfig(mode="warm_start", num_steps=5, warm_num_steps=3, warm_start_step=1)
     keys = jax.random.split(jax.random.PRNGKey(0), 12)
-    r = jax.jit(lambda k, e: rollout(task, make_oracle_apply("p_mo2g"), None, SCHEDULE, k, e,
-                                     config))(keys, p_mo2g_episodes)
+    r = jax.jit(lambda p, k, e: rollout(task, p, k, e))(oracle_planner("p_mo2g", config), keys,
+                                                         p_mo2g_episodes)
     assert bool(jnp.all(r.final_state.success))
     np.testing.assert_array_equal(np.asarray(r.denoiser_calls),
                                   3 + 2 * (np.asarray(r.steps) - 1))
@@ -142,8 +159,8 @@ def test_results_do_not_depend_on_batch_composition(p_mo2g_episodes, on_the_fly_
     task = GridTask(make_config("p_mo2g"))
     config = PlannerConfig(mode="on_the_fly", num_steps=2, warm_start_step=1)
     keys = jax.random.split(jax.random.PRNGKey(0), 12)[6:]
-    r = jax.jit(lambda k, e: rollout(task, make_oracle_apply("p_mo2g"), None, SCHEDULE, k, e,
-                                     config))(keys, half)
+    r = jax.jit(lambda p, k, e: rollout(task, p, k, e))(oracle_planner("p_mo2g", config), keys,
+                                                         half)
     np.testing.assert_array_equal(np.asarray(r.positions),
                                   np.asarray(on_the_fly_result.positions)[6:])
 
@@ -240,16 +257,15 @@ def test_oracle_template_positions_match_grammar():
                                                ("on_the_fly", False)])
 def test_stream_rollout_matches_batched_rollout(p_mo2g_episodes, mode, fresh_noise):
     """The slot-refilling rollout gives every episode exactly what the batched one gives."""
-    from diffplan.planner import rollout_stream
+    from diffplan import rollout_stream
 
     task = GridTask(make_config("p_mo2g"))
     config = PlannerConfig(mode=mode, num_steps=2, warm_start_step=1, fresh_noise=fresh_noise)
+    planner = oracle_planner("p_mo2g", config)
     keys = jax.random.split(jax.random.PRNGKey(0), 12)
-    apply_fn = make_oracle_apply("p_mo2g")
-    batched = jax.jit(lambda k, e: rollout(task, apply_fn, None, SCHEDULE, k, e, config))(
-        keys, p_mo2g_episodes)
-    stream = jax.jit(lambda k, e: rollout_stream(task, apply_fn, None, SCHEDULE, k, e, config,
-                                                 num_slots=5, num_fresh=2))(keys, p_mo2g_episodes)
+    batched = jax.jit(lambda p, k, e: rollout(task, p, k, e))(planner, keys, p_mo2g_episodes)
+    stream = jax.jit(lambda p, k, e: rollout_stream(task, p, k, e, num_slots=5, num_fresh=2))(
+        planner, keys, p_mo2g_episodes)
     for name in ("positions", "steps", "done", "denoiser_calls", "num_plans", "first_plan"):
         np.testing.assert_array_equal(np.asarray(getattr(stream, name)),
                                       np.asarray(getattr(batched, name)), err_msg=name)
@@ -261,20 +277,20 @@ def test_stream_rollout_matches_batched_rollout(p_mo2g_episodes, mode, fresh_noi
 
 def test_stream_in_pieces_matches_one_stream(p_mo2g_episodes):
     """StreamRollout run a few moves per call gives exactly rollout_stream's result."""
-    from diffplan.planner import StreamRollout, rollout_stream
+    from diffplan import StreamRollout, rollout_stream
 
     task = GridTask(make_config("p_mo2g"))
     config = PlannerConfig(mode="warm_start", num_steps=2, warm_start_step=1)
+    planner = oracle_planner("p_mo2g", config)
     keys = jax.random.split(jax.random.PRNGKey(1), 12)
-    apply_fn = make_oracle_apply("p_mo2g")
-    whole = jax.jit(lambda k, e: rollout_stream(task, apply_fn, None, SCHEDULE, k, e, config,
-                                                num_slots=4))(keys, p_mo2g_episodes)
-    stream = StreamRollout(task, apply_fn, SCHEDULE, config, num_slots=4)
-    advance = jax.jit(lambda k, e, c: stream.advance(None, k, e, c, max_moves=3))
-    carry = jax.jit(stream.start)(None, keys, p_mo2g_episodes)
+    whole = jax.jit(lambda p, k, e: rollout_stream(task, p, k, e, num_slots=4))(
+        planner, keys, p_mo2g_episodes)
+    stream = StreamRollout(task, config, num_slots=4)
+    advance = jax.jit(lambda p, k, e, c: stream.advance(p, k, e, c, max_moves=3))
+    carry = jax.jit(stream.start)(planner, keys, p_mo2g_episodes)
     retired, calls = [], 0
     while not bool(carry.finished):
-        carry = advance(keys, p_mo2g_episodes, carry)
+        carry = advance(planner, keys, p_mo2g_episodes, carry)
         retired.append(int(carry.episodes_retired))
         calls += 1
     pieces = stream.result(carry)
@@ -282,7 +298,12 @@ def test_stream_in_pieces_matches_one_stream(p_mo2g_episodes):
     for a, b in zip(jax.tree.leaves(pieces), jax.tree.leaves(whole)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(ValueError, match="on_the_fly and warm_start"):
-        StreamRollout(task, apply_fn, SCHEDULE, PlannerConfig(mode="one_shot"), num_slots=4)
+        StreamRollout(task, PlannerConfig(mode="one_shot"), num_slots=4)
+
+
+def _zero_eps(params, x_t, t, tokens):
+    """An eps network predicting zero noise: the initial noise becomes the plan."""
+    return jnp.zeros(x_t.shape[:-1] + (3,), x_t.dtype)
 
 
 @pytest.mark.parametrize("fresh_noise", [True, False])
@@ -292,13 +313,9 @@ def test_fresh_noise_controls_the_replan_noise(p_mo2g_episodes, fresh_noise):
     task = GridTask(make_config("p_mo2g"))
     config = PlannerConfig(mode="on_the_fly", num_steps=2, warm_start_step=1, record_plans=True,
                            fresh_noise=fresh_noise)
-
-    def zero_eps(params, x_t, t, tokens):
-        return jnp.zeros(x_t.shape[:-1] + (task.num_gen_channels,), x_t.dtype)
-
     keys = jax.random.split(jax.random.PRNGKey(0), 12)
-    out = jax.jit(lambda k, e: rollout(task, zero_eps, None, SCHEDULE, k, e, config))(
-        keys, p_mo2g_episodes)
+    out = jax.jit(lambda p, k, e: rollout(task, p, k, e))(
+        Planner(as_denoiser(_zero_eps), config), keys, p_mo2g_episodes)
     plans = np.asarray(out.plans)
     steps = np.asarray(out.steps)
     multi = np.where(steps >= 2)[0]
@@ -307,29 +324,100 @@ def test_fresh_noise_controls_the_replan_noise(p_mo2g_episodes, fresh_noise):
     assert all(same) if not fresh_noise else not any(same)
 
 
+def _noisy_eps(params, x_t, t, tokens):
+    """Depends on the noise, the condition and the words (and not on other batch rows)."""
+    return jnp.tanh(x_t[..., NUM_COND_CHANNELS:] * 0.5 + x_t[..., :1] * 0.01
+                    + tokens[:, :1, None, None] * 0.001)
+
+
+@pytest.mark.parametrize("mode", ["k_shot", "warm_start"])
 @pytest.mark.parametrize("chunk", [1, 5, 12])
-def test_plan_subset_equals_full_batch_planning(p_mo2g_episodes, chunk):
-    """k-shot re-plans only the episodes that need it, in sub-batches: the same plans as a
-    full-batch plan where needed, the old plan elsewhere."""
-    from diffplan.planner import _plan_subset, make_planner
-
+def test_plan_batch_equals_vmapped_plan(p_mo2g_episodes, mode, chunk):
+    """plan_batch plans only the episodes that need it, in sub-batches: exactly the plans and
+    states of jax.vmap(plan), and inactive episodes are left untouched."""
     task = GridTask(make_config("p_mo2g"))
-    config = PlannerConfig(mode="k_shot", num_steps=2, warm_start_step=1)
-
-    def noisy_eps(params, x_t, t, tokens):  # depends on the noise, the condition and the words
-        return jnp.tanh(x_t[..., NUM_COND_CHANNELS:] * 0.5 + x_t[..., :1] * 0.01
-                        + tokens[:, :1, None, None] * 0.001)
-
-    plan_fn = make_planner(task, noisy_eps, None, SCHEDULE, config)
-    states = jax.vmap(task.reset)(p_mo2g_episodes)
-    tokens = p_mo2g_episodes.tokens
+    planner = Planner(as_denoiser(_noisy_eps),
+                      PlannerConfig(mode=mode, num_steps=2, warm_start_step=1))
+    conditions = jax.vmap(task.condition)(jax.vmap(task.reset)(p_mo2g_episodes))
     keys = jax.random.split(jax.random.PRNGKey(3), 12)
-    old = jnp.zeros((12, 16, 16, 2)) - 0.5
-    need = jnp.array([1, 0, 0, 1, 1, 0, 1, 0, 0, 0, 1, 1], bool)
-    full = plan_fn(keys, states, tokens)
-    got = jax.jit(lambda n: _plan_subset(plan_fn, n, keys, states, tokens, old, chunk))(need)
-    expected = jnp.where(need[:, None, None, None], full, old)
-    np.testing.assert_allclose(np.asarray(got), np.asarray(expected), atol=1e-6)
-    none = jax.jit(lambda n: _plan_subset(plan_fn, n, keys, states, tokens, old, chunk))(
-        jnp.zeros(12, bool))
-    np.testing.assert_array_equal(np.asarray(none), np.asarray(old))
+    ps = jax.vmap(planner.init)(keys, p_mo2g_episodes.tokens)
+    # A first plan for half of them, so that the second call mixes first plans and re-plans.
+    half = jnp.arange(12) % 2 == 0
+    _, ps = planner.plan_batch(ps, conditions, active=half)
+    replan = jnp.array([1, 0, 0, 1, 1, 0, 1, 0, 0, 0, 1, 1], bool)
+    active = jnp.arange(12) != 5
+    got_plans, got = jax.jit(lambda s, c, a, r: planner.plan_batch(s, c, a, r, chunk=chunk))(
+        ps, conditions, active, replan)
+    want_plans, want = jax.jit(jax.vmap(planner.plan))(ps, conditions, replan)
+    want_plans = jnp.where(active[:, None, None, None], want_plans, ps.plan)
+    want = jax.tree.map(lambda w, o: jnp.where(active.reshape((-1,) + (1,) * (w.ndim - 1)), w,
+                                               o), want, ps)
+    np.testing.assert_allclose(np.asarray(got_plans), np.asarray(want_plans), atol=1e-6)
+    for name in ("move", "calls", "num_plans"):
+        np.testing.assert_array_equal(np.asarray(getattr(got, name)),
+                                      np.asarray(getattr(want, name)), err_msg=name)
+    assert int(got.move[5]) == int(ps.move[5])  # inactive: no move counted
+
+
+def _open_state(agent, visited_cells=()):
+    """A 1O1G state on an empty grid with the agent at `agent`, seeing everything."""
+    config = make_config("1o1g")
+    eps = generate_batch(jax.random.PRNGKey(0), config, 1)
+    state = jax.tree.map(lambda x: x[0], jax.vmap(GridTask(config).reset)(eps))
+    visited = jnp.zeros((16, 16), bool).at[tuple(agent)].set(True)
+    for cell in visited_cells:
+        visited = visited.at[cell].set(True)
+    return state.replace(agent=jnp.array(agent, jnp.int32), grid=jnp.zeros_like(state.grid),
+                         seen=jnp.ones((16, 16), bool), visited=visited)
+
+
+def _point_plan(goal, subgoal, second=None):
+    """(16, 16, 3) plan: no path, goal and sub-goal at the given cells; `second` a weaker
+    sub-goal candidate."""
+    g = jnp.full((16, 16), -1.0).at[goal].set(1.0)
+    s = jnp.full((16, 16), -1.0).at[subgoal].set(1.0)
+    if second is not None:
+        s = s.at[second].set(0.5)
+    return jnp.stack([jnp.full((16, 16), -1.0), g, s], -1)
+
+
+def _walk(plan, start, moves):
+    """Cells visited by following psi for `moves` moves on an empty grid from `start`."""
+    cells, visited = [tuple(start)], []
+    for _ in range(moves):
+        state = _open_state(cells[-1], visited)
+        visited.append(cells[-1])
+        step = np.asarray(bfs.MOVES)[int(psi(state, plan))]
+        cells.append(tuple(np.asarray(cells[-1]) + step))
+    return cells
+
+
+def test_psi_heads_for_the_subgoal_and_steps_around_the_goal():
+    """Hand-computed: on an empty grid from (5, 5) the agent heads for the sub-goal (5, 9); with
+    the goal estimate at (5, 7) on the straight line, it walks a shortest detour around it
+    (6 moves) instead of ending the episode there; with the sub-goal on the goal estimate it
+    walks straight there (2 moves)."""
+    from envs.gridworld.task import goal_estimate
+
+    plan = _point_plan(goal=(5, 7), subgoal=(5, 9))
+    np.testing.assert_array_equal(goal_estimate(_open_state((5, 5)), plan), [5, 9])
+    cells = _walk(plan, (5, 5), 6)
+    assert cells[-1] == (5, 9) and (5, 7) not in cells
+    assert _walk(_point_plan(goal=(5, 7), subgoal=(5, 7)), (5, 5), 2) == [(5, 5), (5, 6), (5, 7)]
+
+
+def test_subgoal_skips_visited_cells_and_reaching_it_triggers_a_replan():
+    """The sub-goal psi heads for is the channel's argmax among unvisited cells: standing on
+    the reference, the agent heads for the next candidate (the target), and k-shot's trigger
+    (at_goal_estimate) fires there."""
+    from envs.gridworld.task import goal_estimate
+
+    task = GridTask(make_config("1o1g"))
+    plan = _point_plan(goal=(9, 9), subgoal=(5, 5), second=(9, 9))
+    on_ref = _open_state((5, 5), [(4, 5)])
+    np.testing.assert_array_equal(goal_estimate(on_ref, plan), [9, 9])
+    assert bool(task.at_goal_estimate(on_ref, plan))
+    assert not bool(task.at_goal_estimate(_open_state((4, 5)), plan))
+    # A model with 2 generated channels (no sub-goal) heads for its goal channel.
+    two = jnp.stack([plan[..., 0], plan[..., 1]], -1)
+    np.testing.assert_array_equal(goal_estimate(_open_state((5, 5)), two), [9, 9])

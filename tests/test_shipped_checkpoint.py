@@ -18,9 +18,8 @@ def shipped():
     if not os.path.isdir(CHECKPOINT):
         pytest.fail(f"the shipped checkpoint {CHECKPOINT} is missing")
     spec = cc.SPECS["p_mo2g"]
-    params, model_config, metadata = cc.load_model(spec, CHECKPOINT)
-    spec = dataclasses.replace(spec, prediction=cc.checkpoint_prediction(metadata))
-    return spec, params, model_config, metadata
+    denoiser, metadata = cc.load_model(CHECKPOINT)
+    return spec, denoiser, metadata
 
 
 def test_checkpoint_has_a_note_with_its_provenance():
@@ -30,18 +29,20 @@ def test_checkpoint_has_a_note_with_its_provenance():
 
 
 def test_checkpoint_config_matches_the_default_model(shipped):
-    spec, _, model_config, metadata = shipped
-    assert model_config == spec.model_config("default")
-    assert metadata["extra"]["mixture"] == [list(m) for m in cc.TRAINING_MIXTURE]
+    spec, denoiser, metadata = shipped
+    expected = dataclasses.replace(spec.model_config("default"),
+                                   num_gen_channels=denoiser.num_gen_channels)
+    assert denoiser.model_config == expected
+    assert metadata["extra"]["mixture"] == spec.recipe().metadata()["mixture"]
 
 
 def test_on_the_fly_sr_on_64_p_mo2g_episodes(shipped):
-    spec, params, model_config, _ = shipped
-    task = spec.task()
+    spec, denoiser, _ = shipped
+    task = spec.task(denoiser.num_gen_channels)
     # Episodes from a seed used by no shipped number (README uses 1000).
     episodes = cc.eval_episodes(spec.grid_config(), 64, seed=4242)
-    rollout, _ = cc.evaluate_mode(spec, task, params, model_config, episodes, 64, 4242,
-                                  "on_the_fly", 64, progress=False)
+    rollout, _ = cc.evaluate_mode(spec, task, denoiser, episodes, 4242, "on_the_fly", 64,
+                                  progress=False)
     m = trajectory_metrics(rollout.positions, rollout.steps, episodes.target,
                            episodes.expert_path, episodes.reference)
     assert m["SR"] >= 90.0, m

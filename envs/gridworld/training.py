@@ -1,0 +1,212 @@
+"""The grid world's training data: supervised examples for the in-painting denoiser.
+
+An example is a state the agent can be in (along an expert path, or a few random moves off it)
+and the plan from there (the targets of the generated channels, see :func:`training_example`).
+:class:`Recipe` is the recipe the shipped denoiser was trained with: one denoiser for the three
+settings, trained on a fixed mixture of them per batch (TRAINING_MIXTURE), half of the examples
+with detours, the goal channels weighted 3x in the loss.
+
+Training episodes come from ``fold_in(step key, TRAIN_STREAM)`` (:func:`training_episode_keys`),
+never of the form ``fold_in(PRNGKey(seed), i)`` that evaluation episodes use.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from envs.gridworld import bfs, env
+from envs.gridworld.config import GridConfig, make_config
+from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
+from envs.gridworld.task import NUM_GEN_CHANNELS, condition_from_observation
+
+TRAIN_STREAM = 0x7EA1
+TRAINING_MIXTURE = (("p_mo2g", 36), ("mo1g", 18), ("1o1g", 10))
+"""Examples of each setting per batch of 64 (one denoiser serves the three settings)."""
+
+
+def _state_along_expert(episode: Episode, config: GridConfig, index):
+    """The state after following the expert path for ``index`` moves (int32 ())."""
+    positions = episode.expert_positions  # (P, 2)
+    steps = jnp.arange(positions.shape[0])
+    taken = steps <= index
+    size = config.size
+    fovs = jax.vmap(lambda p: env.field_of_view(p, size, config.view_radius))(positions)
+    seen = jnp.any(fovs & taken[:, None, None], axis=0)
+    visited = bfs.positions_to_mask(positions, size, taken)
+    agent = positions[index]
+    if config.has_reference:
+        on_ref = jnp.all(positions == episode.reference, axis=-1)
+        reached_reference = jnp.any(on_ref & taken)
+    else:
+        reached_reference = jnp.array(False)
+    on_target = jnp.all(agent == episode.target)
+    return env.State(
+        grid=episode.grid, agent=agent, target=episode.target, reference=episode.reference,
+        seen=seen, visited=visited, t=index.astype(jnp.int32), collisions=jnp.int32(0),
+        reached_reference=reached_reference, done=on_target, success=on_target,
+    )
+
+
+def _random_detour(key, state: env.State, config: GridConfig, num_moves, max_moves: int):
+    """The state after ``num_moves`` (int32 () <= max_moves, static) uniformly random moves
+    from ``state`` (moves into obstacles or off the grid stay in place, as in the world)."""
+    actions = jax.random.randint(key, (max_moves,), 0, 4)
+
+    def move(s, inputs):
+        i, action = inputs
+        moved = env.step(s, action, config)
+        return jax.tree.map(lambda new, old: jnp.where(i < num_moves, new, old), moved, s), None
+
+    state, _ = jax.lax.scan(move, state, (jnp.arange(max_moves), actions))
+    return state
+
+
+def _expert_from(state: env.State, episode: Episode, config: GridConfig):
+    """bool (H, W): the cells of a shortest path from the agent's cell through the reference
+    (unless already reached) to the target, ends included."""
+    passable = episode.grid != OBSTACLE_CELL
+    reference = (jnp.where(state.reached_reference, state.agent, episode.reference)
+                 if config.has_reference else episode.reference)
+    positions, length, _ = expert_path_positions(config, passable, state.agent, episode.target,
+                                                 reference)
+    valid = jnp.arange(positions.shape[0]) <= length
+    return bfs.positions_to_mask(positions, config.size, valid)
+
+
+def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_detour: int = 8):
+    """One supervised example: a state along an expert path and the plan from there.
+
+    The agent is placed after a uniformly drawn number of expert moves (0..expert_length - 1)
+    with the field of view accumulated along the way. With probability ``detour_prob`` it then
+    takes 1..max_detour uniformly random moves (so the model also sees the states an imperfect
+    on-the-fly agent reaches). Targets of the generated channels (envs.gridworld.task):
+      path      a shortest path from there (through the reference unless it was reached) to
+                the target, ends included (without a detour: the rest of the expert path);
+      goal      the target cell, whether or not it has been seen (the model must infer it from
+                the instruction and the reference);
+      sub-goal  the reference while the agent has not stood on it (P-MO2G), else the target.
+
+    Returns (x0 float32 (H, W, C + 3), tokens int32 (L,), seen bool (H, W)).
+    """
+    k_episode, k_index, k_detour, k_moves, k_walk = jax.random.split(key, 5)
+    episode = generate(k_episode, config)
+    length = jnp.maximum(episode.expert_length, 1)
+    index = jax.random.randint(k_index, (), 0, length)
+    state = _state_along_expert(episode, config, index)
+    if detour_prob > 0:
+        detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done
+        num_moves = jnp.where(detour, jax.random.randint(k_moves, (), 1, max_detour + 1), 0)
+        state = _random_detour(k_walk, state, config, num_moves, max_detour)
+        path = _expert_from(state, episode, config)
+    else:
+        steps = jnp.arange(episode.expert_positions.shape[0])
+        remaining = (steps >= index) & (steps <= episode.expert_length)
+        path = bfs.positions_to_mask(episode.expert_positions, config.size, remaining)
+    obs = env.observe(state, config)
+    goal = env._cell_mask(episode.target, config.size)
+    if config.has_reference:
+        next_cell = jnp.where(state.reached_reference, episode.target, episode.reference)
+    else:
+        next_cell = episode.target
+    subgoal = env._cell_mask(next_cell, config.size)
+    signed = lambda mask: (mask.astype(jnp.float32) * 2 - 1)[..., None]  # noqa: E731
+    x0 = jnp.concatenate([condition_from_observation(obs), signed(path), signed(goal),
+                          signed(subgoal)], axis=-1)
+    return x0, episode.tokens, state.seen
+
+
+# ------------------------------------------------------------------------------ batches
+
+def training_episode_keys(key, batch_size: int):
+    """The episode keys of one training batch: (batch_size,) keys from the TRAIN_STREAM fold
+    of the step's key (never of the form fold_in(PRNGKey(seed), i) used for evaluation)."""
+    return jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
+
+
+def make_batch_fn(config: GridConfig, goal_channel: bool = True,
+                  goal_loss_seen_only: bool = False, detour_prob: float = 0.0,
+                  goal_loss_weight: float = 1.0):
+    """batch_fn(key, batch_size) -> diffplan.train.Batch of examples of one setting.
+
+    goal_channel=False trains without goal information (the paper's "- g" ablation: the goal
+    and sub-goal channels are dropped from the loss). goal_loss_seen_only masks the goal loss
+    to seen cells. detour_prob: the share of examples whose agent left the expert path by a
+    few random moves (:func:`training_example`). goal_loss_weight: the weight of the goal and
+    sub-goal channels in the loss relative to the path channel's (each is one cell of H x W).
+    """
+    if not goal_loss_weight > 0:
+        raise ValueError(f"goal_loss_weight must be > 0, got {goal_loss_weight}")
+    if not 0 <= detour_prob <= 1:
+        raise ValueError(f"detour_prob must be in [0, 1], got {detour_prob}")
+    from diffplan.train import Batch
+
+    def batch_fn(key, batch_size):
+        keys = training_episode_keys(key, batch_size)
+        x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None, None))(
+            keys, config, detour_prob)
+        ones = jnp.ones(x0.shape[:-1], jnp.float32)
+        goal = goal_loss_weight * (seen.astype(jnp.float32) if goal_loss_seen_only else ones)
+        subgoal = goal_loss_weight * ones
+        if not goal_channel:
+            goal, subgoal = jnp.zeros_like(goal), jnp.zeros_like(subgoal)
+        mask = jnp.stack([ones, goal, subgoal], axis=-1)
+        return Batch(x0=x0, tokens=tokens, loss_mask=mask)
+
+    return batch_fn
+
+
+def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
+                          **example_kwargs):
+    """batch_fn(key, batch_size) -> Batch with the settings' examples in fixed proportions:
+    mixture ((setting, count), ...) gives count examples of each setting per sum(counts) (the
+    batch size must be a multiple of sum(counts)); example j of setting s comes from
+    training_episode_keys(fold_in(key, index of s), ...). example_kwargs go to
+    :func:`make_batch_fn`."""
+    from diffplan.train import Batch
+
+    total = sum(count for _, count in mixture)
+    fns = [(make_batch_fn(make_config(setting), goal_channel, **example_kwargs), count)
+           for setting, count in mixture]
+
+    def batch_fn(key, batch_size):
+        if batch_size % total:
+            raise ValueError(f"batch size {batch_size} is not a multiple of the mixture's "
+                             f"{total} examples {mixture}")
+        scale = batch_size // total
+        parts = [fn(jax.random.fold_in(key, i), count * scale)
+                 for i, (fn, count) in enumerate(fns)]
+        return Batch(*[jnp.concatenate(xs) for xs in zip(*parts)])
+
+    return batch_fn
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """The grid world's training-data recipe (what ``experiments.compile_*`` --train uses).
+
+    mixture: (setting, examples per batch of sum(counts)). detour_prob / goal_loss_weight: see
+    :func:`make_batch_fn`. goal_channel: False for the "- g" ablation.
+    """
+
+    mixture: tuple = TRAINING_MIXTURE
+    detour_prob: float = 0.5
+    goal_loss_weight: float = 3.0
+    goal_channel: bool = True
+
+    def batch_fn(self):
+        return make_mixture_batch_fn(self.mixture, self.goal_channel,
+                                     detour_prob=self.detour_prob,
+                                     goal_loss_weight=self.goal_loss_weight)
+
+    def init_batch(self):
+        """Shapes of one example (every setting's examples have the same shapes)."""
+        fn = make_batch_fn(make_config(self.mixture[0][0]))
+        return jax.eval_shape(lambda k: fn(k, 1), jax.random.PRNGKey(0))
+
+    def metadata(self) -> dict:
+        """What a checkpoint records of the recipe (compared when resuming)."""
+        return {"mixture": [list(m) for m in self.mixture], "goal_channel": self.goal_channel,
+                "detour_prob": self.detour_prob, "goal_loss_weight": self.goal_loss_weight,
+                "num_gen_channels": NUM_GEN_CHANNELS}
