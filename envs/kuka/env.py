@@ -1,0 +1,157 @@
+"""The Kuka block world: pure reset / step over a :class:`State` pytree (mujoco_playground style).
+
+One high-level action is one pick-and-place, given on the planner's 24 x 24 grid
+(:mod:`envs.kuka.grid`): ``action = int32 (4,) (pick_row, pick_col, place_row, place_col)``.
+The block picked is the highest block covering the pick cell (none: the arm moves without
+grasping); it is placed on the highest other block covering the place cell, centred on it, or
+on the floor at the place cell's centre where no block covers it. The primitive
+(:mod:`envs.kuka.primitive`) carries it around the base along :func:`grid.arc_points`
+(:func:`step_along` takes another path). Every action costs primitive.NUM_STEPS physics steps.
+
+The episode ends when its relations hold (strictly: success.on_matrix; stacking also needs the
+four blocks in one tower) or after ``episode.max_steps`` placements; stepping a done state
+changes nothing. Nothing here depends on the task but through the Episode's arrays, so one
+compiled step serves every task. Everything is jit- and vmap-able; one ``mjx.Model`` (physics.mjx_model) serves every
+episode.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from envs.kuka import grid, physics, primitive, scene, success, tasks
+from envs.kuka.tasks import Episode, TaskSpec
+
+
+@struct.dataclass
+class State:
+    """Dynamic state of one episode (leading batch axes allowed when vmapped).
+
+    data: mjx.Data, the physics (block poses in qpos, the suction in eq_active);
+    episode: the Episode (instruction, constraints, the expert's goal);
+    t: int32 () placements made; done: bool ().
+    """
+
+    data: object
+    episode: Episode
+    t: jax.Array
+    done: jax.Array
+
+
+def reset(episode: Episode) -> State:
+    """The state at t = 0: blocks at rest at episode.block_xy, the arm at home, nothing held."""
+    return State(data=physics.initial_data(episode.block_xy), episode=episode,
+                 t=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool))
+
+
+def on_matrix(state: State):
+    """bool (4, 4) [i, j]: block i is on block j (strict)."""
+    return success.on_matrix(physics.block_pos(state.data), physics.held(state.data))
+
+
+def satisfied(state: State):
+    """bool (3,): each instructed constraint holds (strict; padding rows False)."""
+    return success.satisfied(on_matrix(state), state.episode.constraints)
+
+
+def goal_reached(state: State):
+    """bool (): the instructed relations hold (and, for stacking, the four blocks stand in one
+    tower)."""
+    ep = state.episode
+    valid = ep.constraints[:, 0] >= 0
+    relations = jnp.all(satisfied(state) | ~valid)
+    tower = success.single_tower(physics.block_pos(state.data), physics.held(state.data))
+    return relations & (tower | ~ep.tower)
+
+
+def view(state: State):
+    """The planner's view (top int32 (24, 24), height int32 (24, 24)); see grid.top_down_view."""
+    return grid.view_of(state.data)
+
+
+def resolve(data, action):
+    """What an action means in this physical state.
+
+    Returns (block int32 () the block to pick or -1, place float32 (3,) the top-centre target
+    of the placed block, pick_xy float32 (2,), place_xy float32 (2,))."""
+    action = jnp.asarray(action, jnp.int32)
+    pos, quat = physics.block_pos(data), physics.block_quat(data)
+    held = physics.held(data)
+    top, _ = grid.top_down_view(pos, quat, held)
+    block = top[action[0], action[1]]
+    cover = grid.footprints(pos, quat) & ~held[:, None, None]
+    others = cover[:, action[2], action[3]] & (jnp.arange(scene.NUM_BLOCKS) != block)
+    support = jnp.argmax(jnp.where(others, pos[:, 2], -jnp.inf))
+    on_block = others.any()
+    place_xy = jnp.where(on_block, pos[support, :2], grid.cell_center(action[2:]))
+    support_top = jnp.where(on_block, pos[support, 2] + scene.BLOCK_HALF_SIZE[2], 0.0)
+    pick_xy = jnp.where(block >= 0, pos[jnp.maximum(block, 0), :2],
+                        grid.cell_center(action[:2]))
+    return block, primitive.place_target(support_top, place_xy), pick_xy, place_xy
+
+
+def _advance(state: State, data) -> State:
+    moved = state.replace(data=data, t=state.t + 1)
+    moved = moved.replace(done=goal_reached(moved) | (moved.t >= state.episode.max_steps))
+    # Done states are returned unchanged.
+    return jax.tree.map(lambda new, old: jnp.where(state.done, old, new), moved, state)
+
+
+def step_along(state: State, action, waypoints_xy) -> State:
+    """One pick-and-place (action int32 (4,), see the module docstring) carried along
+    waypoints_xy float (N, 2) (its ends are replaced by the pick and place points)."""
+    block, place, _, _ = resolve(state.data, action)
+    data = primitive.pick_and_place(state.data, block, place, waypoints_xy)
+    return _advance(state, data)
+
+
+def step(state: State, action) -> State:
+    """One pick-and-place (action int32 (4,)) carried around the base (grid.arc_points)."""
+    _, _, pick_xy, place_xy = resolve(state.data, action)
+    waypoints = grid.arc_points(pick_xy, place_xy, primitive.NUM_WAYPOINTS)
+    return step_along(state, action, waypoints)
+
+
+@dataclasses.dataclass(frozen=True)
+class KukaEnv:
+    """The world for one task, mujoco_playground style: ``reset(key)``, ``step(state, action)``
+    (pure; jit and vmap them). Hashable (pass as a static argument)."""
+
+    spec: TaskSpec
+
+    @property
+    def mjx_model(self):
+        return physics.mjx_model()
+
+    @property
+    def mj_model(self):
+        return scene.mj_model()
+
+    @property
+    def max_steps(self) -> int:
+        return self.spec.max_steps
+
+    def generate(self, key) -> Episode:
+        return tasks.generate(key, self.spec)
+
+    def reset(self, key) -> State:
+        """A fresh episode of the task from key, at t = 0."""
+        return reset(self.generate(key))
+
+    def reset_episode(self, episode: Episode) -> State:
+        return reset(episode)
+
+    def step(self, state: State, action) -> State:
+        return step(state, action)
+
+    def step_along(self, state: State, action, waypoints_xy) -> State:
+        return step_along(state, action, waypoints_xy)
+
+    def done(self, state: State):
+        return state.done
+
+    def view(self, state: State):
+        return view(state)

@@ -1,0 +1,71 @@
+"""The scripted expert: the next pick-and-place and the end effector's path on the grid.
+
+The expert builds the episode's goal relations (Episode.goal, bottom up) in order: it moves the
+top block of the first relation that does not hold (strictly) onto its bottom block. Its action
+picks the cell of the block's centre and places on the cell of the support's centre; the end
+effector carries the block around the base along grid.arc_points, and the path drawn on the
+grid is the cells it passes over (both ends included). These are the diffusion model's training
+targets: the path channel and the goal estimate (the place cell).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from envs.kuka import env, grid, physics
+
+
+@struct.dataclass
+class ExpertStep:
+    """The expert's decision in one state.
+
+    action: int32 (4,) (pick_row, pick_col, place_row, place_col) for env.step;
+    block, support: int32 () the block moved and the block it goes on;
+    path: bool (24, 24) the cells under the end effector's carry path;
+    goal: int32 (2,) the place cell (the goal estimate's target);
+    relation: int32 () the goal relation worked on (3 when every relation holds: the action
+      then repeats the last relation, and the episode is done anyway).
+    """
+
+    action: jax.Array
+    block: jax.Array
+    support: jax.Array
+    path: jax.Array
+    goal: jax.Array
+    relation: jax.Array
+
+
+def next_step(state: env.State) -> ExpertStep:
+    """The expert's next pick-and-place in a state (pure; vmap over episodes)."""
+    goal = state.episode.goal
+    valid = goal[:, 0] >= 0
+    on = env.on_matrix(state)
+    holds = on[jnp.maximum(goal[:, 0], 0), jnp.maximum(goal[:, 1], 0)] | ~valid
+    first = jnp.argmin(holds)  # the first relation that does not hold
+    relation = jnp.where(holds.all(), goal.shape[0], first)
+    last = jnp.maximum(valid.sum() - 1, 0)
+    top, bottom = goal[jnp.where(holds.all(), last, first)]
+    pos = physics.block_pos(state.data)
+    cells = grid.block_cells(pos)
+    pick, place = cells[top], cells[bottom]
+    return ExpertStep(action=jnp.concatenate([pick, place]).astype(jnp.int32), block=top,
+                      support=bottom, path=grid.path_map(pos[top, :2], pos[bottom, :2]),
+                      goal=place.astype(jnp.int32), relation=relation.astype(jnp.int32))
+
+
+def act(state: env.State):
+    """int32 (4,): the expert's next action."""
+    return next_step(state).action
+
+
+def rollout(episodes):
+    """Runs the expert on a batch of episodes (leading axis B) until every one is done (each
+    after at most its max_steps placements); returns the final env.State (batched). One
+    compilation serves every task."""
+    states = jax.vmap(env.reset)(episodes)
+
+    def body(states):
+        return jax.vmap(env.step)(states, jax.vmap(act)(states))
+
+    return jax.lax.while_loop(lambda s: jnp.any(~s.done), body, states)

@@ -1,0 +1,115 @@
+"""The Kuka world's instruction language, built on the shared ``diffplan.language``.
+
+An instruction is up to four sentences: an optional tower sentence (stacking with one
+instructed relation: "Build a tower of all four blocks.") and one sentence per instructed
+relation "X on Y" ("Stack the green block on top of the red block."). Each sentence kind has a
+canonical phrasing (template 0, the paper's Table 2 instructions) and paraphrases (the paper's
+Table 5 "complex" instructions), some of which invert the preposition and name the lower block
+first ("Put the red block below the green block" means green on red). Templates have the slots
+``{top}`` and ``{bottom}``; token ids are filled in JAX (:func:`instruction_tokens`).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffplan import language
+from envs.kuka.scene import BLOCK_NAMES
+
+PAD = "<pad>"
+SLOTS = ("{top}", "{bottom}")
+
+RELATION_TEMPLATES: tuple[str, ...] = (
+    "Stack the {top} block on top of the {bottom} block.",
+    "Place the {top} block on the {bottom} block.",
+    "Put the {bottom} block below the {top} block.",
+    "Set the {top} block onto the {bottom} block.",
+    "The {bottom} block goes under the {top} block.",
+    "Put the {top} block above the {bottom} block.",
+    "Move the {top} block so that it rests on the {bottom} block.",
+    "The {bottom} block should be beneath the {top} block.",
+)
+"""One relation "top on bottom"; 0 is canonical. Templates 2, 4 and 7 invert the preposition."""
+INVERTED = (2, 4, 7)
+
+TOWER_TEMPLATES: tuple[str, ...] = (
+    "Build a tower of all four blocks.",
+    "Stack all four blocks into one tower.",
+    "Make a single tower with the four blocks.",
+    "Pile the four blocks up into one tower.",
+)
+"""The tower sentence of single-constraint stacking; 0 is canonical."""
+
+LANGUAGES = ("canonical", "paraphrased")
+"""canonical: every sentence in its template 0; paraphrased: every sentence in a uniformly drawn
+paraphrase (never template 0)."""
+
+
+def _build_vocab() -> tuple[str, ...]:
+    words = language.template_words(RELATION_TEMPLATES + TOWER_TEMPLATES, SLOTS)
+    # Block colours right after the padding: block i has token id i + 1.
+    return (PAD,) + BLOCK_NAMES + tuple(sorted(words - set(BLOCK_NAMES)))
+
+
+VOCABULARY = language.Vocabulary(_build_vocab())
+VOCAB = VOCABULARY.words
+SENTENCE_TOKENS = 14
+"""Fixed length of a compiled sentence (the longest template has 13 tokens)."""
+MAX_RELATIONS = 3
+MAX_TOKENS = 40
+"""Fixed instruction length: room for three relations in the longest paraphrase (39 tokens)."""
+
+RELATIONS = np.stack([VOCABULARY.compile(t, SLOTS, SENTENCE_TOKENS) for t in RELATION_TEMPLATES])
+TOWERS = np.stack([VOCABULARY.compile(t, SLOTS, SENTENCE_TOKENS) for t in TOWER_TEMPLATES])
+
+
+def block_token(block):
+    """Token id of block index i (0 red .. 3 yellow; ints, numpy or jax arrays)."""
+    return block + 1
+
+
+def encode(text: str) -> np.ndarray:
+    return VOCABULARY.encode(text, MAX_TOKENS)
+
+
+def decode(ids) -> str:
+    return VOCABULARY.decode(ids)
+
+
+def _choose(key, num: int, paraphrased: bool, shape=()):
+    if not paraphrased:
+        return jnp.zeros(shape, jnp.int32)
+    return jax.random.randint(key, shape, 1, num)
+
+
+def instruction_tokens(key, constraints, tower_sentence, paraphrased: bool):
+    """int32 (MAX_TOKENS,) an instruction's token ids; jit/vmap-able.
+
+    constraints: int32 (MAX_RELATIONS, 2) (top, bottom) block indices, -1 rows are absent;
+    tower_sentence: bool () starts with the tower sentence; paraphrased (static): every sentence
+    in a uniformly drawn paraphrase instead of its canonical phrasing.
+    """
+    k_tower, k_rel = jax.random.split(key)
+    constraints = jnp.asarray(constraints)
+    tower = jnp.asarray(TOWERS)[_choose(k_tower, len(TOWER_TEMPLATES), paraphrased)]
+    which = _choose(k_rel, len(RELATION_TEMPLATES), paraphrased, (MAX_RELATIONS,))
+    slots = block_token(jnp.maximum(constraints, 0))
+    relations = jax.vmap(language.fill_slots)(jnp.asarray(RELATIONS)[which], slots)
+    segments = jnp.concatenate([tower[None], relations])
+    lengths = (segments != language.PAD_ID).sum(-1)
+    present = jnp.concatenate([jnp.asarray(tower_sentence)[None], constraints[:, 0] >= 0])
+    return language.concat_segments(segments, jnp.where(present, lengths, 0), MAX_TOKENS)
+
+
+def render(constraints, tower_sentence: bool, relation_templates=None, tower_template: int = 0):
+    """Plain-Python rendering of an instruction (the reference for tests): constraints
+    ((top, bottom), ...) block indices (-1 rows skipped), each relation in
+    relation_templates[k] (default canonical)."""
+    sentences = [TOWER_TEMPLATES[tower_template]] if tower_sentence else []
+    rows = [(int(t), int(b)) for t, b in np.asarray(constraints).reshape(-1, 2) if t >= 0]
+    templates = relation_templates or [0] * len(rows)
+    for (top, bottom), k in zip(rows, templates):
+        sentences.append(language.render(RELATION_TEMPLATES[k], {
+            "top": BLOCK_NAMES[top], "bottom": BLOCK_NAMES[bottom]}))
+    return " ".join(sentences)
