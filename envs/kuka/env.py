@@ -32,19 +32,24 @@ class State:
 
     data: mjx.Data, the physics (block poses in qpos, the suction in eq_active);
     episode: the Episode (instruction, constraints, the expert's goal);
-    t: int32 () placements made; done: bool ().
+    t: int32 () placements made; done: bool ();
+    frames: float32 (primitive.NUM_FRAMES, nq) the physics qpos every primitive.FRAME_EVERY
+      steps of the last placement (the initial qpos at reset), for videos.
     """
 
     data: object
     episode: Episode
     t: jax.Array
     done: jax.Array
+    frames: jax.Array
 
 
 def reset(episode: Episode) -> State:
     """The state at t = 0: blocks at rest at episode.block_xy, the arm at home, nothing held."""
-    return State(data=physics.initial_data(episode.block_xy), episode=episode,
-                 t=jnp.zeros((), jnp.int32), done=jnp.zeros((), bool))
+    data = physics.initial_data(episode.block_xy)
+    return State(data=data, episode=episode, t=jnp.zeros((), jnp.int32),
+                 done=jnp.zeros((), bool),
+                 frames=jnp.broadcast_to(data.qpos, (primitive.NUM_FRAMES,) + data.qpos.shape))
 
 
 def on_matrix(state: State):
@@ -93,8 +98,8 @@ def resolve(data, action):
     return block, primitive.place_target(support_top, place_xy), pick_xy, place_xy
 
 
-def _advance(state: State, data) -> State:
-    moved = state.replace(data=data, t=state.t + 1)
+def _advance(state: State, data, frames) -> State:
+    moved = state.replace(data=data, t=state.t + 1, frames=frames)
     moved = moved.replace(done=goal_reached(moved) | (moved.t >= state.episode.max_steps))
     # Done states are returned unchanged.
     return jax.tree.map(lambda new, old: jnp.where(state.done, old, new), moved, state)
@@ -104,8 +109,8 @@ def step_along(state: State, action, waypoints_xy) -> State:
     """One pick-and-place (action int32 (4,), see the module docstring) carried along
     waypoints_xy float (N, 2) (its ends are replaced by the pick and place points)."""
     block, place, _, _ = resolve(state.data, action)
-    data = primitive.pick_and_place(state.data, block, place, waypoints_xy)
-    return _advance(state, data)
+    data, frames = primitive.pick_and_place(state.data, block, place, waypoints_xy)
+    return _advance(state, data, frames)
 
 
 def step(state: State, action) -> State:
@@ -113,6 +118,12 @@ def step(state: State, action) -> State:
     _, _, pick_xy, place_xy = resolve(state.data, action)
     waypoints = grid.arc_points(pick_xy, place_xy, primitive.NUM_WAYPOINTS)
     return step_along(state, action, waypoints)
+
+
+reset_batch = jax.jit(jax.vmap(reset))
+"""jitted reset over a batch of episodes (shared by the CLIs, benchmark and tests)."""
+step_batch = jax.jit(jax.vmap(step))
+"""jitted step over a batch of states and actions (B, 4)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from envs.kuka import env, grid, physics
+from envs.kuka import env, grid, physics, tasks
 
 
 @struct.dataclass
@@ -59,13 +59,26 @@ def act(state: env.State):
     return next_step(state).action
 
 
-def rollout(episodes):
-    """Runs the expert on a batch of episodes (leading axis B) until every one is done (each
-    after at most its max_steps placements); returns the final env.State (batched). One
-    compilation serves every task."""
-    states = jax.vmap(env.reset)(episodes)
+def rollout(states):
+    """Runs the expert on a batch of states (leading axis B, e.g. env.reset_batch(episodes))
+    until every episode is done (each after at most its max_steps placements).
 
-    def body(states):
-        return jax.vmap(env.step)(states, jax.vmap(act)(states))
+    Returns (final env.State, frames float32 (B, tasks.MAX_STEPS, NUM_FRAMES, nq): placement
+    k's recorded qpos (env.State.frames) in frames[:, k] for k < final t; the rest is
+    unspecified). One compilation serves every task."""
+    b = states.t.shape[0]
+    frames = jnp.broadcast_to(states.frames[:, None],
+                              (b, tasks.MAX_STEPS) + states.frames.shape[1:])
 
-    return jax.lax.while_loop(lambda s: jnp.any(~s.done), body, states)
+    def body(carry):
+        states, frames = carry
+        index = jnp.minimum(states.t, tasks.MAX_STEPS - 1)
+        states = jax.vmap(env.step)(states, jax.vmap(act)(states))
+        frames = frames.at[jnp.arange(b), index].set(states.frames)
+        return states, frames
+
+    return jax.lax.while_loop(lambda c: jnp.any(~c[0].done), body, (states, frames))
+
+
+run_expert = jax.jit(rollout)
+"""jitted rollout (shared by the CLIs and tests; one compilation per batch size)."""

@@ -97,3 +97,16 @@ def quat_to_mat(quat) -> jax.Array:
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ]
     return xp.stack([xp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def simulate(data, num_steps):
+    """data after num_steps (int, may be traced: one compilation serves every count) physics
+    steps with the servo targets and suction held as they are."""
+    from mujoco import mjx
+
+    model = mjx_model()
+    return jax.lax.fori_loop(0, num_steps, lambda _, d: mjx.step(model, d), data)
+
+
+simulate_batch = jax.jit(jax.vmap(simulate, in_axes=(0, None)))
+"""jitted simulate over a batch of mjx.Data (one compilation per batch size)."""

@@ -123,11 +123,17 @@ def plan(data, block, place_pos, waypoints_xy):
     return ctrl, weld, jnp.max(pos_err)
 
 
-def run(data, ctrl, weld, block, record_every: int = 0):
+FRAME_EVERY = 8
+"""The primitive records the physics state every FRAME_EVERY steps (0.04 s: 25 frames per
+simulated second) for videos."""
+NUM_FRAMES = NUM_STEPS // FRAME_EVERY
+
+
+def run(data, ctrl, weld, block):
     """Steps the physics along servo targets ctrl (T, 7) with block's weld on where weld (T,).
 
-    Returns the final mjx.Data, and with record_every > 0 also the qpos of every record_every-th
-    step (float32 (T // record_every, nq)) for videos."""
+    Returns (the final mjx.Data, qpos float32 (T // FRAME_EVERY, nq) of every FRAME_EVERY-th
+    step, for videos)."""
     from mujoco import mjx
 
     model = physics.mjx_model()
@@ -137,21 +143,19 @@ def run(data, ctrl, weld, block, record_every: int = 0):
         target, on = inputs
         d = d.replace(ctrl=target, eq_active=(onehot & on).astype(d.eq_active.dtype))
         d = mjx.step(model, d)
-        return d, (d.qpos if record_every else None)
+        return d, d.qpos
 
     data, qpos = jax.lax.scan(body, data, (ctrl, weld))
-    if record_every:
-        return data, qpos[record_every - 1::record_every]
-    return data
+    return data, qpos[FRAME_EVERY - 1::FRAME_EVERY][:ctrl.shape[0] // FRAME_EVERY]
 
 
-def pick_and_place(data, block, place_pos, waypoints_xy, record_every: int = 0):
+def pick_and_place(data, block, place_pos, waypoints_xy):
     """Moves block (int32 (), -1: none) to place_pos float (3,) (the block's top centre when
     placed) along waypoints_xy float (N, 2) under physics (NUM_STEPS steps).
 
-    Returns the final mjx.Data (nothing held), plus the recorded qpos with record_every > 0."""
+    Returns (the final mjx.Data, nothing held; frames float32 (NUM_FRAMES, nq), see run)."""
     ctrl, weld, _ = plan(data, block, place_pos, waypoints_xy)
-    return run(data, ctrl, weld, block, record_every)
+    return run(data, ctrl, weld, block)
 
 
 def place_target(support_top, xy):

@@ -105,7 +105,7 @@ def scene_xml() -> str:
         integrator="Euler">
   <flag eulerdamp="disable"/>
 </option>
-<visual><global offwidth="640" offheight="480"/></visual>
+<visual><global offwidth="640" offheight="480"/><headlight ambient="0.3 0.3 0.3"/></visual>
 <default>
   <default class="arm">
     <geom type="capsule" contype="0" conaffinity="0" rgba="0.9 0.5 0.1 1" density="0"/>
@@ -122,12 +122,12 @@ def scene_xml() -> str:
   <material name="grid" texture="grid" texrepeat="8 8" reflectance="0.05"/>
 </asset>
 <worldbody>
-<light pos="0 0 3" dir="0 0 -1" diffuse="0.8 0.8 0.8"/>
-<light pos="1.5 -1.5 2.5" dir="-0.5 0.5 -1" diffuse="0.3 0.3 0.3"/>
+<light pos="0 0 3" dir="0 0 -1" diffuse="0.7 0.7 0.7"/>
+<light pos="1.5 -1.5 2.5" dir="-0.5 0.5 -1" diffuse="0.5 0.5 0.5"/>
 <geom name="floor" type="plane" size="2 2 0.05" material="grid" contype="1" conaffinity="1"
       condim="3" friction="{FRICTION} 0.005 0.0001"/>
 <camera name="top" pos="0 0 2.6" xyaxes="1 0 0 0 1 0" fovy="45"/>
-<camera name="side" pos="1.9 -1.9 1.6" xyaxes="0.707 0.707 0 -0.33 0.33 0.88" fovy="45"/>
+<camera name="side" pos="1.35 -1.35 1.25" xyaxes="0.707 0.707 0 -0.37 0.37 0.85" fovy="55"/>
 <body name="base" childclass="arm">
 <geom class="arm" type="cylinder" size="0.09 0.02" pos="0 0 0.02" rgba="0.3 0.3 0.3 1"/>
 {"".join(arm_open)}{flange}{"".join(arm_close)}</body>

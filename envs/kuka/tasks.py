@@ -103,6 +103,8 @@ class TaskSpec:
 
 
 KINDS = ("stacking", "rearrangement")
+MAX_STEPS = 6
+"""The largest max_steps of any task (stacking's)."""
 COLUMNS = {spec.name: spec for spec in (
     TaskSpec("stacking", False), TaskSpec("rearrangement", False),
     TaskSpec("stacking", True), TaskSpec("rearrangement", True))}
@@ -176,10 +178,12 @@ def sample_relations(key, spec: TaskSpec):
 
 
 def generate(key, spec: TaskSpec) -> Episode:
-    """An episode of the task from a key (the layout from the key's first split, so every task
-    shares the layouts of a seed)."""
+    """An episode of the task from a key: the layout from the key's first split (every task
+    shares the layouts of a seed), the relations from a split folded with the task's column
+    (each column draws its own) and the phrasing from the third."""
     k_layout, k_rel, k_lang = jax.random.split(key, 3)
-    constraints, goal = sample_relations(k_rel, spec)
+    column = list(COLUMNS).index(dataclasses.replace(spec, language="canonical").name)
+    constraints, goal = sample_relations(jax.random.fold_in(k_rel, column), spec)
     tower = spec.kind == "stacking"
     tokens = grammar.instruction_tokens(k_lang, constraints, tower and not spec.multi,
                                         spec.language == "paraphrased")

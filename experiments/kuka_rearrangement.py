@@ -1,0 +1,5 @@
+"""Kuka block world, rearrangement (the paper's Table 2): `python -m experiments.kuka_rearrangement --help`."""
+from experiments.kuka_common import main
+
+if __name__ == "__main__":
+    main("rearrangement")

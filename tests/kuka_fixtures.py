@@ -1,0 +1,53 @@
+"""Helpers shared by the Kuka tests: one batch size everywhere (so each jitted library function,
+e.g. env.reset_batch, env.step_batch, expert.run_expert, physics.simulate_batch, compiles once
+per test session and is reused from the persistent cache afterwards), and memoised episodes."""
+from __future__ import annotations
+
+import functools
+import warnings
+
+import jax
+import numpy as np
+
+MJX_CAST_WARNING = "ignore:overflow encountered in cast:RuntimeWarning"
+"""Lowering MJX programs casts some of MuJoCo's float64 "unbounded" constants to float32; the
+tests' pytestmark filters it (harmless)."""
+warnings.filterwarnings("ignore", "overflow encountered in cast")
+
+BATCH = 4
+"""Episodes per jitted call in every Kuka test (the CLI tests pass --batch-size BATCH)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _generator():
+    from envs.kuka import tasks
+
+    return jax.jit(jax.vmap(tasks.generate, in_axes=(0, None)), static_argnums=1)
+
+
+@functools.lru_cache(maxsize=32)
+def episodes(column: str, seed: int, language: str = "canonical"):
+    """BATCH episodes (numpy Episode) of a Table 2 column: episodes 0..BATCH-1 of seed."""
+    import dataclasses
+
+    from envs.kuka import tasks
+
+    spec = dataclasses.replace(tasks.COLUMNS[column], language=language)
+    return jax.device_get(_generator()(tasks.episode_keys(seed, BATCH), spec))
+
+
+@functools.lru_cache(maxsize=32)
+def expert_run(column: str, seed: int):
+    """(final env.State, frames) of the expert on episodes(column, seed), as numpy."""
+    from envs.kuka import env, expert
+
+    return jax.device_get(expert.run_expert(env.reset_batch(episodes(column, seed))))
+
+
+def numpy_on(pos, held, top, bottom) -> bool:
+    """Contract 4's "top on bottom" in plain numpy (pos (4, 3), held (4,), block half height
+    0.03 m): xy distance < 0.1, |bottom of top - top of bottom| < 0.015, neither held."""
+    pos = np.asarray(pos, np.float64)
+    xy = np.hypot(*(pos[top, :2] - pos[bottom, :2]))
+    gap = (pos[top, 2] - 0.03) - (pos[bottom, 2] + 0.03)
+    return bool(xy < 0.1 and abs(gap) < 0.015 and not held[top] and not held[bottom])

@@ -1,0 +1,62 @@
+"""The scripted expert in physics on each Table 2 column, and its training targets."""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+import kuka_fixtures as kf
+from envs.kuka import env, expert, grid, physics, tasks
+
+pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
+
+
+@pytest.mark.parametrize("column", list(tasks.COLUMNS))
+def test_expert_satisfies_every_instructed_constraint(column):
+    """Checked with the plain-numpy contract-4 check on the final physical poses."""
+    spec = tasks.COLUMNS[column]
+    episodes = kf.episodes(column, 11)
+    final, frames = kf.expert_run(column, 11)
+    pos = np.asarray(jax.vmap(physics.block_pos)(final.data))
+    held = np.asarray(jax.vmap(physics.held)(final.data))
+    for i in range(kf.BATCH):
+        for top, bottom in episodes.constraints[i]:
+            if top >= 0:
+                assert kf.numpy_on(pos[i], held[i], top, bottom), (column, i, top, bottom)
+        if spec.kind == "stacking":  # one tower of four, bottom block on the floor
+            assert sorted(np.round((pos[i, :, 2] - 0.03) / 0.06).astype(int)) == [0, 1, 2, 3]
+    needed = 3 if spec.kind == "stacking" else spec.num_constraints
+    np.testing.assert_array_equal(final.t, needed)
+    assert final.done.all() and not held.any()
+    assert frames.shape[:2] == (kf.BATCH, tasks.MAX_STEPS)
+
+
+def test_expert_targets_on_the_grid():
+    """The first step of each episode: the path runs from the moved block's cell to the place
+    cell (the support's), around the base; the action picks and places those cells."""
+    episodes = kf.episodes("rearrangement_multi", 12)
+    states = env.reset_batch(episodes)
+    steps = jax.device_get(jax.vmap(expert.next_step)(states))
+    pos = np.asarray(jax.vmap(physics.block_pos)(states.data))
+    centres = grid.cell_centers()
+    for i in range(kf.BATCH):
+        block, support = int(steps.block[i]), int(steps.support[i])
+        assert (block, support) == tuple(episodes.goal[i, 0])
+        pick = np.asarray(grid.xy_to_cell(pos[i, block, :2]))
+        place = np.asarray(grid.xy_to_cell(pos[i, support, :2]))
+        np.testing.assert_array_equal(steps.action[i], np.concatenate([pick, place]))
+        np.testing.assert_array_equal(steps.goal[i], place)
+        path = steps.path[i]
+        assert path.dtype == bool and path[tuple(pick)] and path[tuple(place)]
+        assert np.linalg.norm(centres[path], axis=-1).min() > 0.45  # never over the base
+        assert int(steps.relation[i]) == 0
+
+
+def test_expert_after_the_end_reports_every_relation_done():
+    final, _ = kf.expert_run("rearrangement_single", 11)
+    steps = jax.vmap(expert.next_step)(final)
+    np.testing.assert_array_equal(np.asarray(steps.relation), tasks.MAX_RELATIONS)
+    # A done state does not change when stepped.
+    again = env.step_batch(final, steps.action)
+    np.testing.assert_array_equal(np.asarray(again.data.qpos), np.asarray(final.data.qpos))
+    np.testing.assert_array_equal(np.asarray(again.t), np.asarray(final.t))
