@@ -30,7 +30,11 @@ from diffplan.jax_cache import enable_compilation_cache
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHECKPOINT_ROOT = os.path.join(REPO_ROOT, "checkpoints")
-DEFAULT_EVAL_SEED = 1000
+VALIDATION_SEED = 1000
+"""The episodes every choice (psi, step counts, warm-start schedule, checkpoint) was made on."""
+EVALUATION_SEEDS = (2001, 2002, 2003)
+"""The seeds the README reports on (3 x 1000 episodes); never used to choose anything."""
+DEFAULT_EVAL_SEED = EVALUATION_SEEDS[0]
 ROLLOUT_STREAM = 0x9A11
 
 
@@ -58,7 +62,7 @@ class ExperimentSpec:
     prediction: str = "x0"
     detour_prob: float = 0.5
     goal_loss_weight: float = 3.0
-    train_steps: int = 4000
+    train_steps: int = 8000
     batch_size: int = 64
     lr: float = 1e-3
     warmup_steps: int = 200
@@ -265,6 +269,47 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
     return jax.tree.map(lambda x: x[inverse], merged), seconds
 
 
+def concat_trees(trees):
+    """Concatenates pytrees of numpy arrays along their leading axis."""
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *trees)
+
+
+PER_SEED_FIELDS = ("SR", "SR_ordered", "GD", "path_f1", "denoiser_calls_per_episode", "seconds")
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> list[float]:
+    """95% Wilson score interval of a rate, in percent."""
+    if n == 0:
+        return [0.0, 100.0]
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return [100.0 * max(0.0, centre - half), 100.0 * min(1.0, centre + half)]
+
+
+def add_intervals(row, rollout, episodes, has_reference):
+    """Adds SR_ci95 (and SR_ordered_ci95) over the pooled episodes to a metrics row."""
+    n = len(rollout.steps)
+    row["SR_ci95"] = wilson_interval(int(round(row["SR"] * n / 100)), n)
+    if has_reference:
+        row["SR_ordered_ci95"] = wilson_interval(int(round(row["SR_ordered"] * n / 100)), n)
+
+
+def format_intervals(rows, seeds) -> str:
+    """Per-seed SR and the pooled 95% intervals, one line per row."""
+    lines = [f"SR per seed ({', '.join(map(str, seeds))}) and 95% interval of the pooled SR:"]
+    for row in rows:
+        per = " / ".join(f"{row['per_seed'][str(s)]['SR']:.1f}" for s in seeds)
+        lo, hi = row["SR_ci95"]
+        extra = ""
+        if "SR_ordered_ci95" in row:
+            olo, ohi = row["SR_ordered_ci95"]
+            per_o = " / ".join(f"{row['per_seed'][str(s)]['SR_ordered']:.1f}" for s in seeds)
+            extra = f"; SR_ordered {per_o} [{olo:.2f}, {ohi:.2f}]"
+        lines.append(f"  {row['method']:<22} {per} [{lo:.2f}, {hi:.2f}]{extra}")
+    return "\n".join(lines)
+
+
 def metrics_row(method, rollout, episodes, seconds, has_reference):
     from diffplan.metrics import plan_metrics, trajectory_metrics
 
@@ -347,10 +392,17 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                    help="number of evaluation episodes (default 1000)")
     p.add_argument("--seed", type=int, default=DEFAULT_EVAL_SEED,
                    help="evaluation seed: episode i is generated from fold_in(PRNGKey(seed), i) "
-                        f"(default {DEFAULT_EVAL_SEED}; training uses a disjoint key stream)")
+                        f"(default {DEFAULT_EVAL_SEED}, an evaluation seed; training uses a "
+                        "disjoint key stream)")
+    p.add_argument("--seeds", metavar="S1,S2,...", default=None,
+                   help="evaluate on several seeds (--episodes each) and report pooled metrics "
+                        "with 95%% intervals and per-seed values; the README's tables use "
+                        f"{','.join(map(str, EVALUATION_SEEDS))} (evaluation seeds); "
+                        f"{VALIDATION_SEED} is the validation seed every choice was made on")
     p.add_argument("--json", metavar="PATH", help="write the results (contract 2) as JSON")
     p.add_argument("--trajectories", metavar="PATH.npz",
-                   help="write the executed trajectories of the main row and the episodes")
+                   help="write the executed trajectories of the main row and the episodes "
+                        "(of every seed, in order)")
     p.add_argument("--checkpoint", metavar="DIR",
                    help=f"evaluate this checkpoint (default: the shipped "
                         f"checkpoints/{TRAINING_NAME}, or the --train output)")
@@ -396,8 +448,23 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     return p
 
 
+def parse_seeds(parser, args):
+    """The evaluation seeds: --seeds (comma-separated) or --seed."""
+    if args.seeds is None:
+        return (args.seed,)
+    try:
+        seeds = tuple(int(x) for x in args.seeds.split(",") if x.strip())
+    except ValueError:
+        parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        parser.error(f"--seeds must be distinct non-negative integers, got {args.seeds!r}")
+    return seeds
+
+
 def check_args(parser, args, spec):
     from diffplan.planner import MODES
+    if args.seed < 0:
+        parser.error(f"--seed must be >= 0, got {args.seed}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.batch_size < 1:
@@ -423,6 +490,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     parser = build_parser(spec)
     args = parser.parse_args(argv)
     modes = check_args(parser, args, spec)
+    seeds = parse_seeds(parser, args)
     spec = dataclasses.replace(spec, num_steps=args.num_steps,
                                warm_start_step=args.warm_start_step,
                                warm_num_steps=args.warm_num_steps,
@@ -448,20 +516,32 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
 
     grid_config = spec.grid_config()
     task = spec.task(denoiser.num_gen_channels)
-    episodes = eval_episodes(grid_config, args.episodes, args.seed)
+    per_seed = {seed: eval_episodes(grid_config, args.episodes, seed) for seed in seeds}
+    episodes = concat_trees(list(per_seed.values()))
     rows, rollouts = [], {}
     for mode in modes:
-        rollout_np, seconds = evaluate_mode(spec, task, denoiser, episodes, args.seed, mode,
-                                            args.batch_size, progress)
-        rows.append(metrics_row(METHOD_NAMES[mode], rollout_np, episodes, seconds,
-                                grid_config.has_reference))
+        outs = [evaluate_mode(spec, task, denoiser, eps, seed, mode, args.batch_size, progress)
+                for seed, eps in per_seed.items()]
+        rollout_np = concat_trees([r for r, _ in outs])
+        row = metrics_row(METHOD_NAMES[mode], rollout_np, episodes, sum(t for _, t in outs),
+                          grid_config.has_reference)
+        if len(seeds) > 1:
+            add_intervals(row, rollout_np, episodes, grid_config.has_reference)
+            row["per_seed"] = {
+                str(seed): {k: v for k, v in metrics_row(
+                    METHOD_NAMES[mode], r, eps, t, grid_config.has_reference).items()
+                    if k in PER_SEED_FIELDS}
+                for (seed, eps), (r, t) in zip(per_seed.items(), outs)}
+        rows.append(row)
         rollouts[mode] = rollout_np
 
     main_mode = spec.main_mode if spec.main_mode in modes else modes[0]
     result = {
         "experiment": spec.name,
         "episodes": args.episodes,
-        "seed": args.seed,
+        "seed": seeds[0],
+        "seeds": list(seeds),
+        "validation": bool(VALIDATION_SEED in seeds),
         "setting": setting,
         "checkpoint": os.path.relpath(checkpoint, REPO_ROOT) if checkpoint else None,
         "num_steps": spec.num_steps,
@@ -474,9 +554,12 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                    f"{jax.devices()[0].platform}",
         "rows": rows,
     }
-    print(f"\n{spec.name}: {args.episodes} episodes, seed {args.seed}, "
-          f"{spec.num_steps} denoising steps per plan, checkpoint {result['checkpoint']}")
+    print(f"\n{spec.name}: {args.episodes} episodes per seed, seed(s) "
+          f"{','.join(map(str, seeds))}, {spec.num_steps} denoising steps per plan, checkpoint "
+          f"{result['checkpoint']}")
     print(format_table(rows))
+    if len(seeds) > 1:
+        print(format_intervals(rows, seeds))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as f:
@@ -487,7 +570,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         print(f"wrote {args.trajectories} ({METHOD_NAMES[main_mode]} trajectories)")
     if args.figures:
         from experiments.compile_figures import write_figures
-        paths = write_figures(args.figures, spec, task, denoiser, episodes, args.seed,
+        paths = write_figures(args.figures, spec, task, denoiser, per_seed[seeds[0]], seeds[0],
                               min(args.num_figures, args.episodes))
         print(f"wrote {len(paths)} figures to {args.figures}")
     return result

@@ -57,7 +57,9 @@ def write_figures(out_dir, spec, task, denoiser, episodes, seed, count):
             plan = np.asarray(rollout.plans[i, t])
             render.render_episode(ax, np.asarray(episodes.grid[i]), positions[t], *args[2:],
                                   seen=np.asarray(state.seen), path=plan[..., 0],
-                                  goal=plan[..., 1], executed=positions[: t + 1],
+                                  goal=plan[..., 1],
+                                  subgoal=plan[..., 2] if plan.shape[-1] > 2 else None,
+                                  executed=positions[: t + 1],
                                   title=f"plan at move {t}")
         fig.suptitle(instruction, fontsize=10)
         fig.tight_layout()

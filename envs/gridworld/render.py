@@ -25,6 +25,7 @@ _OBJECT_RGB = (1.0, 0.93, 0.70)
 _UNSEEN_RGBA = (0.45, 0.47, 0.52, 0.55)
 _PATH_RGB = (0.12, 0.47, 0.85)
 _GOAL_RGB = (0.85, 0.10, 0.65)
+_SUBGOAL_RGB = (0.95, 0.55, 0.0)
 _AGENT_COLOR = "#1f5fbf"
 _TARGET_COLOR = "#d62728"
 _REFERENCE_COLOR = "#2ca02c"
@@ -71,6 +72,7 @@ def _cell(pos, name: str):
 
 
 def _draw(ax, grid, agent, target, reference, instruction, *, seen, path, goal, executed, title,
+          subgoal=None,
           object_names):
     from matplotlib.lines import Line2D
     from matplotlib.patches import Circle, Patch, Rectangle
@@ -113,6 +115,13 @@ def _draw(ax, grid, agent, target, reference, instruction, *, seen, path, goal, 
                     color=_GOAL_RGB, markeredgewidth=2.2, linestyle="none", zorder=6)
         handles.append(Line2D([], [], marker="o", fillstyle="none", color=_GOAL_RGB,
                               markeredgewidth=2, linestyle="none", label="goal estimate"))
+    if subgoal is not None:
+        sg = _unit_map(subgoal, "subgoal", grid.shape)
+        best = np.unravel_index(np.argmax(sg), sg.shape)
+        ax.plot(best[1], best[0], marker="D", markersize=13 * cell_size, fillstyle="none",
+                color=_SUBGOAL_RGB, markeredgewidth=2.0, linestyle="none", zorder=6)
+        handles.append(Line2D([], [], marker="D", fillstyle="none", color=_SUBGOAL_RGB,
+                              markeredgewidth=2, linestyle="none", label="sub-goal"))
     if seen is not None:
         s = np.asarray(seen)
         if s.shape != grid.shape:
@@ -185,7 +194,8 @@ def _draw(ax, grid, agent, target, reference, instruction, *, seen, path, goal, 
 
 
 def render_episode(ax_or_path, grid, agent, target, reference, instruction, *, seen=None,
-                   path=None, goal=None, executed=None, title=None, object_names=None, dpi=130):
+                   path=None, goal=None, subgoal=None, executed=None, title=None,
+                   object_names=None, dpi=130):
     """Draws one episode.
 
     Args:
@@ -197,6 +207,7 @@ def render_episode(ax_or_path, grid, agent, target, reference, instruction, *, s
       path: bool or float (H, W) path map (floats in [-1, 1] or [0, 1]), overlaid in blue.
       goal: float (H, W) goal-estimate map (same ranges), a magenta heat map with a ring at its
         maximum.
+      subgoal: float (H, W) sub-goal map (same ranges), a diamond at its maximum.
       executed: int (T, 2) positions the agent went through, drawn as a line.
       title: optional title line; object_names: class names (default grammar.OBJECT_NAMES).
     Returns:
@@ -204,7 +215,8 @@ def render_episode(ax_or_path, grid, agent, target, reference, instruction, *, s
     """
     if hasattr(ax_or_path, "imshow"):
         return _draw(ax_or_path, grid, agent, target, reference, instruction, seen=seen, path=path,
-                     goal=goal, executed=executed, title=title, object_names=object_names)
+                     goal=goal, subgoal=subgoal, executed=executed, title=title,
+                     object_names=object_names)
     if not isinstance(ax_or_path, (str, os.PathLike)):
         raise ValueError(f"ax_or_path must be a matplotlib Axes or a file path, got "
                          f"{type(ax_or_path).__name__}")
@@ -214,7 +226,7 @@ def render_episode(ax_or_path, grid, agent, target, reference, instruction, *, s
     fig = Figure(figsize=(5.0, 6.0))
     ax = fig.add_axes((0.04, 0.14, 0.92, 0.74))
     _draw(ax, grid, agent, target, reference, instruction, seen=seen, path=path, goal=goal,
-          executed=executed, title=title, object_names=object_names)
+          subgoal=subgoal, executed=executed, title=title, object_names=object_names)
     fig.savefig(out, dpi=dpi, format="png")
     return out
 
