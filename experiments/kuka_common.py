@@ -202,6 +202,13 @@ def pooled_row(method: str, rows, seconds: float) -> dict:
             "seconds": float(seconds)}
 
 
+def write_json(path: str, result: dict) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(result, f, indent=2)
+    print(f"wrote {path}")
+
+
 def write_states(path: str, parts) -> None:
     """Contract 4: the final physics state of every episode (parts: (episodes, final) pairs)."""
     from envs.kuka import grammar, scene
@@ -327,10 +334,7 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
         f"{name} {s:.2f}" + (f" / {m:.2f}" if m is not None else " / -")
         for name, (s, m) in PAPER[kind].items()) + "  (single / multi)")
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
-        print(f"wrote {args.json}")
+        write_json(args.json, result)
     if args.states:
         write_states(args.states, parts)
         print(f"wrote {args.states} ({sum(len(f['placements']) for _, f in parts)} final states "

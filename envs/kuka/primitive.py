@@ -4,7 +4,7 @@
 point to above the block, descends onto the block's top centre, switches the block's suction
 weld on, lifts it to the carry height, carries it along the waypoints, lowers it onto place_pos,
 switches the weld off and retreats upwards while the block settles. Every phase has a fixed
-number of physics steps (:data:`PHASES`, 239 in all = 1.195 simulated seconds), so the whole
+number of physics steps (:data:`PHASES`, 249 in all = 1.245 simulated seconds), so the whole
 primitive is one ``lax.scan`` of ``mjx.step``: it jits and vmaps over episodes.
 
 All joint targets are computed up front from the state at the call (the block's pose and the
