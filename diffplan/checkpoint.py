@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import logging
 import os
 import shutil
 from typing import Any, Mapping, Optional
@@ -108,8 +109,22 @@ def diff_dicts(stored: Any, requested: Any, prefix: str = "") -> list[str]:
     return []
 
 
+class _ReadOnlyNotices(logging.Filter):
+    """Drops orbax's notices that a manager opened read-only is read-only (every load of a
+    shipped checkpoint printed two of them: not the user's business)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not ("read_only=True" in message or "directory is read only" in message)
+
+
+logging.getLogger("absl").addFilter(_ReadOnlyNotices())
+
+
 def _manager(directory: str, *, read_only: bool = False,
              max_to_keep: Optional[int] = MAX_TO_KEEP) -> ocp.CheckpointManager:
+    if read_only:
+        max_to_keep = None
     options = ocp.CheckpointManagerOptions(
         max_to_keep=max_to_keep, enable_async_checkpointing=False, read_only=read_only,
         create=not read_only)

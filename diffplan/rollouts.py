@@ -13,7 +13,7 @@ batch or on how an evaluation is chunked.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -137,12 +137,14 @@ def rollout(task, planner: Planner, keys, episodes, chunk: Optional[int] = None)
 
 
 def rollout_stream(task, planner: Planner, keys, episodes, num_slots: int,
-                   num_fresh: Optional[int] = None, plan_chunks: int = 4) -> Rollout:
+                   num_fresh: Optional[int] = None, plan_chunks: int = 4,
+                   on_move: Optional[Callable] = None, token=None) -> Rollout:
     """:func:`rollout` on a pool of ``num_slots`` episode slots refilled as episodes end (see
     :class:`StreamRollout`); the same per-episode results. keys (N,), episodes (N, ...) for
-    any N."""
-    stream = StreamRollout(task, planner.config, num_slots, num_fresh, plan_chunks)
-    carry = stream.advance(planner, keys, episodes, stream.start(planner, keys, episodes))
+    any N. on_move / token: see StreamRollout (progress reports)."""
+    stream = StreamRollout(task, planner.config, num_slots, num_fresh, plan_chunks, on_move)
+    carry = stream.advance(planner, keys, episodes, stream.start(planner, keys, episodes),
+                           token=token)
     return stream.result(carry)
 
 
@@ -196,6 +198,11 @@ class StreamRollout:
     most ``num_fresh`` new episodes (default num_slots // 8) start per move, and their first
     (full) plans form one sub-batch of that size; further free slots wait for the next move.
     planner, keys and episodes must be the same in every call.
+
+    on_move: optional host function ``on_move(token, episodes_retired)`` called (through
+    ``jax.debug.callback``, unordered) after every move of the pool, e.g. to move a progress
+    bar while one jitted call runs the whole pool; ``token`` is the int32 scalar given to
+    ``advance`` (which bar). It does not change the results.
     """
 
     task: Any
@@ -203,6 +210,7 @@ class StreamRollout:
     num_slots: int
     num_fresh: Optional[int] = None
     plan_chunks: int = 4
+    on_move: Optional[Callable] = None
 
     def __post_init__(self):
         if self.config.mode not in ("on_the_fly", "warm_start"):
@@ -243,8 +251,9 @@ class StreamRollout:
             first_plan=jnp.zeros((n,) + tuple(planner.plan_shape), jnp.float32))
 
     def advance(self, planner: Planner, keys, episodes, carry: StreamCarry,
-                max_moves: Optional[int] = None) -> StreamCarry:
-        """Runs the pool for at most max_moves moves (None: until every episode is done)."""
+                max_moves: Optional[int] = None, token=None) -> StreamCarry:
+        """Runs the pool for at most max_moves moves (None: until every episode is done).
+        token: int32 () passed to on_move."""
         self._check(planner)
         task, slots, n = self.task, int(self.num_slots), keys.shape[0]
         chunk = max(1, -(-slots // self.plan_chunks))
@@ -279,9 +288,13 @@ class StreamRollout:
             row = jnp.where(active, slot_ep, n)
             positions = c.positions.at[row, planner_states.move].set(
                 jax.vmap(task.position)(states), mode="drop")
-            return StreamCarry(next_ep=next_ep, slot_ep=slot_ep, states=states,
-                               planner_states=planner_states, final_states=final_states,
-                               positions=positions, retired=retired, first_plan=first_plan)
+            out = StreamCarry(next_ep=next_ep, slot_ep=slot_ep, states=states,
+                              planner_states=planner_states, final_states=final_states,
+                              positions=positions, retired=retired, first_plan=first_plan)
+            if self.on_move is not None:
+                jax.debug.callback(self.on_move, jnp.int32(0) if token is None else token,
+                                   out.episodes_retired)
+            return out
 
         if max_moves is None:
             return jax.lax.while_loop(lambda c: ~c.finished, body, carry)

@@ -109,7 +109,8 @@ class ExperimentSpec:
         return Recipe(detour_prob=self.detour_prob, goal_loss_weight=self.goal_loss_weight,
                       goal_channel=self.goal_channel)
 
-    def train_config(self, seed: int = 0, steps: int | None = None):
+    def train_config(self, seed: int = 0, steps: int | None = None,
+                     checkpoint_every: int = 500):
         from diffplan.train import TrainConfig
         steps = self.train_steps if steps is None else steps
         from envs.gridworld.task import NUM_GEN_CHANNELS
@@ -117,7 +118,7 @@ class ExperimentSpec:
                            num_gen_channels=NUM_GEN_CHANNELS,
                            prediction=self.prediction,
                            warmup_steps=min(self.warmup_steps, max(steps // 10, 0)),
-                           num_train_timesteps=100, checkpoint_every=500,
+                           num_train_timesteps=100, checkpoint_every=checkpoint_every,
                            log_every=max(1, min(100, steps // 10)))
 
     def planner_config(self, mode: str, **overrides):
@@ -171,7 +172,8 @@ def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
 # ------------------------------------------------------------------------------ training
 
 def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: int | None = None,
-                  progress: bool = True, model_size: str = "default"):
+                  progress: bool = True, model_size: str = "default",
+                  checkpoint_every: int = 500):
     """Trains the setting's denoiser into out_dir with the grid world's training recipe
     (envs.gridworld.training.Recipe), resuming if out_dir holds a checkpoint.
     Returns (ema params, model config, seconds)."""
@@ -181,7 +183,8 @@ def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: i
     model_config = spec.model_config(model_size)
     recipe = spec.recipe()
     start = time.time()
-    result = train(Denoiser(model_config), model_config, spec.train_config(seed, steps),
+    result = train(Denoiser(model_config), model_config,
+                   spec.train_config(seed, steps, checkpoint_every),
                    recipe.batch_fn(), out_dir, init_batch=recipe.init_batch(),
                    progress=progress,
                    extra_metadata={**recipe.metadata(), "model_size": model_size})
@@ -205,19 +208,19 @@ STREAM_MODES = ("on_the_fly", "warm_start")
 
 @functools.lru_cache(maxsize=None)
 def rollout_fn(task, num_slots: int | None = None):
-    """jitted (planner, keys (N,), episodes) -> Rollout: diffplan.rollout, or with num_slots
-    the slot pool (diffplan.rollout_stream, re-planning modes). The planner is an argument,
-    so one compilation serves every checkpoint of the same architecture and every seed.
-
-    One jitted call runs a whole pool: diffplan.StreamRollout could run it a few moves per call
-    (for a progress bar), but measured here (250 P-MO2G episodes, 64 slots) 5 moves per call
-    took 148.5 s against 92.5 s in one call."""
+    """jitted (planner, keys (N,), episodes, token) -> Rollout: diffplan.rollout, or with
+    num_slots the slot pool (diffplan.rollout_stream, re-planning modes), which reports its
+    progress after every move to experiments.progress.RELAY under ``token`` (int32 ()). The
+    planner is an argument, so one compilation serves every checkpoint of the same
+    architecture and every seed."""
     from diffplan.rollouts import rollout, rollout_stream
+    from experiments.progress import RELAY
 
     if num_slots is None:
-        return jax.jit(lambda planner, keys, episodes: rollout(task, planner, keys, episodes))
-    return jax.jit(lambda planner, keys, episodes: rollout_stream(task, planner, keys,
-                                                                  episodes, num_slots))
+        return jax.jit(lambda planner, keys, episodes, token: rollout(task, planner, keys,
+                                                                      episodes))
+    return jax.jit(lambda planner, keys, episodes, token: rollout_stream(
+        task, planner, keys, episodes, num_slots, on_move=RELAY, token=token))
 
 
 def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progress=True,
@@ -226,7 +229,7 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
 
     Re-planning modes run the slot pool (diffplan.rollout_stream) with batch_size slots over
     calls of up to 4 x batch_size episodes (a slot starts the next episode as soon as its
-    episode ends; the progress bar moves once per call); the other modes run batches of
+    episode ends; the progress bar moves as episodes end); the other modes run batches of
     batch_size episodes, processed in order of expert length (a batch's loop runs until its
     slowest episode ends). Episode i always uses the key fold_in(fold_in(PRNGKey(seed),
     ROLLOUT_STREAM), i), so nothing depends on the batching.
@@ -234,14 +237,15 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
     from tqdm import tqdm
 
     from diffplan.planner import Planner
+    from experiments.progress import RELAY
 
     n = int(np.shape(episodes.tokens)[0])
     planner = Planner(denoiser, spec.planner_config(mode, record_plans=record_plans))
     stream = mode in STREAM_MODES and not record_plans
     root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
     start = time.time()
-    bar = tqdm(total=n, desc=f"{spec.setting} {mode}", unit="ep", disable=not progress,
-               file=sys.stderr, leave=False)
+    bar = tqdm(total=n, desc=f"{spec.setting} {METHOD_NAMES[mode]} (seed {seed})", unit="ep",
+               disable=not progress, file=sys.stderr, leave=True, dynamic_ncols=True)
     per_call = min(n, 4 * batch_size) if stream else batch_size
     if stream:
         run = rollout_fn(task, min(batch_size, per_call))
@@ -250,19 +254,25 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
         run = rollout_fn(task)
         order = np.argsort(np.asarray(episodes.expert_length), kind="stable")
     outs = []
-    for lo in range(0, n, per_call):
-        idx = order[lo:lo + per_call]
-        chunk = jax.tree.map(lambda x: x[idx], episodes)
-        keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.asarray(idx))
-        if len(idx) < per_call and lo > 0:
-            # Pad the last call to the compiled size (padding results are dropped).
-            pad = per_call - len(idx)
-            chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
-            keys = jnp.concatenate([keys, keys[:pad]])
-        out = jax.device_get(run(planner, keys, chunk))
-        outs.append(jax.tree.map(lambda x: x[:len(idx)], out))
-        bar.update(len(idx))
-    bar.close()
+    try:
+        for lo in range(0, n, per_call):
+            idx = order[lo:lo + per_call]
+            chunk = jax.tree.map(lambda x: x[idx], episodes)
+            keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.asarray(idx))
+            if len(idx) < per_call and lo > 0:
+                # Pad the last call to the compiled size (padding results are dropped).
+                pad = per_call - len(idx)
+                chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
+                keys = jnp.concatenate([keys, keys[:pad]])
+            token = RELAY.attach(bar, offset=lo)
+            try:
+                out = jax.device_get(run(planner, keys, chunk, jnp.int32(token)))
+            finally:
+                RELAY.detach(token)
+            outs.append(jax.tree.map(lambda x: x[:len(idx)], out))
+            bar.update(min(lo + len(idx), n) - bar.n)
+    finally:
+        bar.close()
     seconds = time.time() - start
     merged = jax.tree.map(lambda *xs: np.concatenate(xs), *outs)
     inverse = np.argsort(order)
@@ -412,14 +422,19 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--train-dir", metavar="DIR", default=None,
                    help=f"training output directory (default runs/{TRAINING_NAME}; one "
                         "denoiser serves all three settings)")
-    p.add_argument("--train-steps", type=int, default=spec.train_steps,
+    p.add_argument("--train-steps", type=int, default=None,
                    help=f"optimisation steps of --train (default {spec.train_steps})")
-    p.add_argument("--train-seed", type=int, default=0, help="training seed (default 0)")
-    p.add_argument("--prediction", choices=("eps", "x0"), default=spec.prediction,
+    p.add_argument("--train-seed", type=int, default=None, help="training seed of --train "
+                   "(default 0)")
+    p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+                   help="--train writes a checkpoint every N steps (default 500); a killed "
+                        "training resumes from the last one")
+    p.add_argument("--prediction", choices=("eps", "x0"), default=None,
                    help="network target of --train: the noise (the paper) or the clean plan "
                         f"(default {spec.prediction}; evaluation follows the checkpoint)")
-    p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default="default",
-                   help="denoiser size for --train ('tiny' is for smoke tests; default 'default')")
+    p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default=None,
+                   help="denoiser size for --train ('tiny' is for smoke tests; default "
+                        "'default')")
     p.add_argument("--modes", default=",".join(spec.modes),
                    help=f"comma-separated planning modes to evaluate (default "
                         f"{','.join(spec.modes)})")
@@ -443,7 +458,8 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--figures", metavar="DIR",
                    help="write PNGs of a few episodes: map, executed path, and the predicted "
                         "paths and goal estimates at several re-plans")
-    p.add_argument("--num-figures", type=int, default=4, help="episodes drawn with --figures")
+    p.add_argument("--num-figures", type=int, default=None,
+                   help="episodes drawn with --figures (default 4)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
 
@@ -461,16 +477,41 @@ def parse_seeds(parser, args):
     return seeds
 
 
+TRAIN_FLAGS = {"train_dir": "--train-dir", "train_steps": "--train-steps",
+               "train_seed": "--train-seed", "checkpoint_every": "--checkpoint-every",
+               "prediction": "--prediction", "model_size": "--model-size"}
+
+
 def check_args(parser, args, spec):
+    """Validates the arguments (one-line errors before any work) and fills the defaults of
+    the flags that only make sense together with another one. Returns the modes."""
     from diffplan.planner import MODES
+    from experiments import cli
+
+    cli.only_with(parser, args, "train", TRAIN_FLAGS)
+    cli.only_with(parser, args, "figures", {"num_figures": "--num-figures"})
+    if args.train and args.checkpoint is not None:
+        parser.error("--checkpoint and --train exclude each other: --train evaluates what it "
+                     "trains (its output directory is --train-dir)")
+    cli.check_at_least(parser, "--train-steps", args.train_steps, 2)
+    cli.check_at_least(parser, "--checkpoint-every", args.checkpoint_every, 1)
+    cli.check_at_least(parser, "--num-figures", args.num_figures, 1)
+    cli.check_output_file(parser, "--json", args.json)
+    cli.check_output_file(parser, "--trajectories", args.trajectories, suffix=".npz")
+    cli.check_output_dir(parser, "--figures", args.figures)
+    cli.check_output_dir(parser, "--train-dir", args.train_dir)
+    args.train_steps = spec.train_steps if args.train_steps is None else args.train_steps
+    args.train_seed = 0 if args.train_seed is None else args.train_seed
+    args.checkpoint_every = 500 if args.checkpoint_every is None else args.checkpoint_every
+    args.prediction = spec.prediction if args.prediction is None else args.prediction
+    args.model_size = "default" if args.model_size is None else args.model_size
+    args.num_figures = 4 if args.num_figures is None else args.num_figures
     if args.seed < 0:
         parser.error(f"--seed must be >= 0, got {args.seed}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.batch_size < 1:
         parser.error(f"--batch-size must be >= 1, got {args.batch_size}")
-    if args.train_steps < 2:
-        parser.error(f"--train-steps must be >= 2, got {args.train_steps}")
     if args.num_steps < 1:
         parser.error(f"--num-steps must be >= 1, got {args.num_steps}")
     warm_steps = args.num_steps if args.warm_num_steps is None else args.warm_num_steps
@@ -483,6 +524,38 @@ def check_args(parser, args, spec):
     if bad or not modes:
         parser.error(f"unknown --modes {bad}; choose from {MODES}")
     return modes
+
+
+def fail(message: str, code: int = 2):
+    """Ends the program with one line on stderr (a user error, not a bug)."""
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+def load_checked(checkpoint: str, spec: ExperimentSpec, modes, parser):
+    """The checkpoint's LoadedDenoiser, checked against the grid world and the requested step
+    counts; one-line errors for a missing, unreadable or mismatched checkpoint."""
+    from envs.gridworld.task import NUM_COND_CHANNELS
+
+    try:
+        denoiser, _ = load_model(checkpoint)
+    except FileNotFoundError:
+        fail(f"no checkpoint in {checkpoint}: train one with `python -m experiments."
+             f"{spec.name} --train` (or pass --checkpoint DIR)")
+    except ValueError as e:
+        fail(f"cannot read the checkpoint {checkpoint}: {e}")
+    size = spec.grid_config().size
+    h, w, g = denoiser.plan_shape
+    if (denoiser.num_cond_channels, h, w) != (NUM_COND_CHANNELS, size, size) or g not in (2, 3):
+        fail(f"the checkpoint {checkpoint} plans {h}x{w} maps with {denoiser.num_cond_channels} "
+             f"condition and {g} generated channels; the grid world needs {size}x{size} with "
+             f"{NUM_COND_CHANNELS} and 2 or 3")
+    for mode in modes:
+        try:
+            spec.planner_config(mode).check_schedule(denoiser.schedule.num_train_steps)
+        except ValueError as e:
+            parser.error(str(e))
+    return denoiser
 
 
 def main(setting: str, argv: Sequence[str] | None = None) -> dict:
@@ -502,17 +575,17 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     if args.train:
         spec = dataclasses.replace(spec, prediction=args.prediction)
         checkpoint = args.train_dir or spec.default_train_dir()
-        _, _, train_seconds = train_setting(
-            spec, checkpoint, seed=args.train_seed, steps=args.train_steps, progress=progress,
-            model_size=args.model_size)
+        from diffplan.train import ConfigMismatchError
+        try:
+            _, _, train_seconds = train_setting(
+                spec, checkpoint, seed=args.train_seed, steps=args.train_steps,
+                progress=progress, model_size=args.model_size,
+                checkpoint_every=args.checkpoint_every)
+        except ConfigMismatchError as e:
+            fail(str(e))
     else:
         checkpoint = args.checkpoint or spec.default_checkpoint()
-    try:
-        denoiser, _ = load_model(checkpoint)
-    except FileNotFoundError:
-        print(f"No checkpoint in {checkpoint}: train one with `python -m experiments."
-              f"{spec.name} --train` (or pass --checkpoint DIR).", file=sys.stderr)
-        raise SystemExit(2)
+    denoiser = load_checked(checkpoint, spec, modes, parser)
 
     grid_config = spec.grid_config()
     task = spec.task(denoiser.num_gen_channels)

@@ -88,12 +88,39 @@ def test_missing_checkpoint_says_how_to_get_one(tmp_path, capsys):
     assert "--train" in msg and len(msg.splitlines()) == 1
 
 
-@pytest.mark.parametrize("argv", [["--episodes", "0"], ["--modes", "two_shot"],
-                                  ["--num-steps", "4", "--warm-start-step", "4"]])
-def test_bad_arguments_are_rejected(argv):
+BAD_INVOCATIONS = [
+    (["--episodes", "0"], "--episodes"),
+    (["--modes", "two_shot"], "--modes"),
+    (["--num-steps", "4", "--warm-start-step", "4"], "--warm-start-step"),
+    (["--json", "{tmp}"], "is a directory"),
+    (["--json", "{tmp}/ckpt_file/r.json"], "cannot be created"),
+    (["--num-steps", "500"], "exceeds the denoiser's schedule"),
+    (["--figures", "{tmp}/f", "--num-figures", "0"], "--num-figures"),
+    (["--num-figures", "3"], "only makes sense with --figures"),
+    (["--trajectories", "{tmp}/x"], "must end in .npz"),
+    (["--train", "--checkpoint", "{tmp}"], "exclude each other"),
+    (["--train-steps", "10"], "only makes sense with --train"),
+    (["--train-seed", "1", "--model-size", "tiny"], "only make sense with --train"),
+    (["--seeds", "1,x"], "--seeds"),
+    (["--seeds", "1,1"], "distinct"),
+    (["--checkpoint", "{tmp}/nothing"], "no checkpoint in"),
+    (["--checkpoint", "{tmp}/ckpt_file"], "no checkpoint in"),
+]
+
+
+@pytest.mark.parametrize("argv, message", BAD_INVOCATIONS)
+def test_bad_arguments_are_rejected_in_one_line(argv, message, tmp_path, capsys):
+    """Every user error ends before any work with one line on stderr and exit code 2."""
+    (tmp_path / "ckpt_file").write_text("not a checkpoint")
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     with pytest.raises(SystemExit) as err:
-        cc.main("p_mo2g", argv)
+        cc.main("p_mo2g", argv + ["--episodes" if "--episodes" not in argv else "--seed",
+                                  "1" if "--episodes" not in argv else "3", "--no-progress"])
     assert err.value.code == 2
+    lines = [l for l in capsys.readouterr().err.strip().splitlines() if l.startswith(
+        ("error", "python -m", "usage"))]
+    assert message in lines[-1], lines
+    assert not any("Traceback" in l for l in lines)
 
 
 def test_evaluation_episodes_are_disjoint_from_training():

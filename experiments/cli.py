@@ -1,0 +1,66 @@
+"""Checks shared by the experiment CLIs, run on the arguments before any work starts, so that
+a user error ends in one line on stderr and exit code 2 (argparse's ``parser.error``), never in
+a traceback after minutes of evaluation."""
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def _writable_dir(path: str) -> bool:
+    """True if ``path`` is a directory we can write into, or could be created as one."""
+    path = os.path.abspath(path)
+    while not os.path.exists(path):
+        parent = os.path.dirname(path)
+        if parent == path:
+            return False
+        path = parent
+    return os.path.isdir(path) and os.access(path, os.W_OK | os.X_OK)
+
+
+def check_output_file(parser: argparse.ArgumentParser, flag: str, path: str | None,
+                      suffix: str | None = None) -> None:
+    """``path`` (the value of ``flag``) can be written as a file: not a directory, its
+    directory writable or creatable, and ending in ``suffix`` if given."""
+    if path is None:
+        return
+    if not path or path.endswith(os.sep):
+        parser.error(f"{flag} needs a file path, got {path!r}")
+    if os.path.isdir(path):
+        parser.error(f"{flag} {path!r} is a directory; give a file path")
+    if suffix and not path.endswith(suffix):
+        parser.error(f"{flag} {path!r} must end in {suffix}")
+    if os.path.exists(path) and not os.access(path, os.W_OK):
+        parser.error(f"{flag} {path!r} exists and is not writable")
+    if not _writable_dir(os.path.dirname(os.path.abspath(path))):
+        parser.error(f"{flag} {path!r}: its directory cannot be created or written")
+
+
+def check_output_dir(parser: argparse.ArgumentParser, flag: str, path: str | None) -> None:
+    """``path`` (the value of ``flag``) is, or can be created as, a writable directory."""
+    if path is None:
+        return
+    if not path:
+        parser.error(f"{flag} needs a directory path")
+    if os.path.exists(path) and not os.path.isdir(path):
+        parser.error(f"{flag} {path!r} is a file; give a directory")
+    if not _writable_dir(path):
+        parser.error(f"{flag} {path!r} cannot be created or written")
+
+
+def check_at_least(parser: argparse.ArgumentParser, flag: str, value, minimum) -> None:
+    """``value`` (of ``flag``) is >= minimum (None: not given, nothing to check)."""
+    if value is not None and value < minimum:
+        parser.error(f"{flag} must be >= {minimum}, got {value}")
+
+
+def only_with(parser: argparse.ArgumentParser, args: argparse.Namespace, needed: str,
+              dependent_flags: dict[str, str]) -> None:
+    """Flags that make sense only with ``--<needed>``: an error naming them when it is off.
+    dependent_flags maps the attribute name (whose default is None) to the flag."""
+    if getattr(args, needed.replace("-", "_")):
+        return
+    given = [flag for attr, flag in dependent_flags.items() if getattr(args, attr) is not None]
+    if given:
+        parser.error(f"{', '.join(given)} only make{'s' if len(given) == 1 else ''} sense with "
+                     f"--{needed}")

@@ -1,0 +1,51 @@
+"""Progress bars that move while one jitted call runs a whole evaluation.
+
+``RELAY`` is the host function handed to ``diffplan.StreamRollout(on_move=...)``: the jitted
+pool reports its number of retired episodes after every move through ``jax.debug.callback``,
+with an integer token naming the bar. The relay is one fixed object, so the compiled function
+is reused from one evaluation to the next; bars are registered per evaluation with
+:meth:`Relay.attach` and detached when it ends (the only mutable state: which bars are open).
+"""
+from __future__ import annotations
+
+import itertools
+import threading
+
+
+class Relay:
+    """Routes (token, count) reports to open tqdm bars: bar.n = offset + count."""
+
+    def __init__(self):
+        self._bars = {}
+        self._tokens = itertools.count(1)
+        self._lock = threading.Lock()
+
+    def attach(self, bar, offset: int = 0) -> int:
+        """Registers a bar; reports of the returned token set it to offset + count."""
+        with self._lock:
+            token = next(self._tokens) % (2 ** 31 - 1)
+            self._bars[token] = (bar, offset)
+        return token
+
+    def detach(self, token: int) -> None:
+        with self._lock:
+            self._bars.pop(int(token), None)
+
+    def __call__(self, token, count) -> None:
+        with self._lock:
+            entry = self._bars.get(int(token))
+        if entry is None:
+            return
+        bar, offset = entry
+        value = offset + int(count)
+        if value > bar.n:
+            bar.update(value - bar.n)
+
+    def __hash__(self):
+        return id(self)
+
+    def __eq__(self, other):
+        return other is self
+
+
+RELAY = Relay()
