@@ -140,18 +140,21 @@ def run_policy(policy: str, episodes, batch: int, bar=None):
 
 def column_metrics(method: str, column: str, episodes, final, seconds: float) -> dict:
     """A results row from the final physical states (numpy)."""
+    import jax
+
     from envs.kuka import success
 
     pos, held = final["block_pos"], final["held"]
     constraints = np.asarray(episodes.constraints)
-    strict = np.stack([np.asarray(success.satisfied(success.on_matrix(p, h), c))
-                       for p, h, c in zip(pos, held, constraints)])
-    loose = np.stack([np.asarray(success.satisfied(success.diffuser_on_matrix(p, h), c))
-                      for p, h, c in zip(pos, held, constraints)])
+    strict = np.asarray(jax.vmap(lambda p, h, c: success.satisfied(success.on_matrix(p, h), c))(
+        pos, held, constraints))
+    loose = np.asarray(jax.vmap(
+        lambda p, h, c: success.satisfied(success.diffuser_on_matrix(p, h), c))(
+        pos, held, constraints))
     valid = constraints[..., 0] >= 0
-    tower = np.array([bool(success.single_tower(p, h)) for p, h in zip(pos, held)])
+    tower = np.asarray(jax.vmap(success.single_tower)(pos, held))
     is_stacking = bool(np.asarray(episodes.tower).all())
-    row = {
+    return {
         "method": method, "column": column, "episodes": int(len(pos)),
         "constraints": int(valid.sum()),
         "SR": 100.0 * strict.sum() / valid.sum(),
@@ -161,7 +164,6 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
         "placements_per_episode": float(np.mean(final["placements"])),
         "seconds": float(seconds),
     }
-    return row
 
 
 TABLE_COLUMNS = (("method", "{:<34}", "method"), ("episodes", "{:>6d}", "eps"),
@@ -228,32 +230,30 @@ def write_states(path: str, parts) -> None:
 
 
 def write_figures(out_dir: str, spec, episodes, final, count: int) -> list[str]:
-    """PNGs of the first `count` episodes: the view at t = 0 with the expert's first path and
-    place cell, and the view at the end."""
+    """PNGs of the first `count` episodes: the view at t = 0 (blocks flat at their initial
+    centres) with the expert's first path and place cell, and the view at the end."""
     import jax
 
-    from envs.kuka import env, expert, grammar, grid, render
+    from envs.kuka import expert, grammar, grid, render, scene
 
-    count = min(count, episodes.block_xy.shape[0])
-    if count == 0:
-        return []
-    first = jax.tree.map(lambda x: x[:count], episodes)
-    states = env.reset_batch(first)
-    steps = jax.vmap(expert.next_step)(states)
-    start_top, start_height = jax.vmap(grid.view_of)(states.data)
-    end_top, end_height = jax.jit(jax.vmap(grid.top_down_view))(
-        final["block_pos"][:count], final["block_quat"][:count], final["held"][:count])
     paths = []
-    for i in range(count):
-        text = grammar.decode(np.asarray(first.tokens[i]))
+    for i in range(min(count, episodes.block_xy.shape[0])):
+        episode = jax.tree.map(lambda x: x[i], episodes)
+        pos0 = np.concatenate([episode.block_xy, np.full((4, 1), scene.BLOCK_HALF_SIZE[2])], 1)
+        flat = np.tile(np.array([1.0, 0, 0, 0], np.float32), (4, 1))
+        first = expert.decide(pos0, np.zeros(4, bool), episode)
+        top0, height0 = grid.top_down_view(pos0, flat)
+        top1, height1 = grid.top_down_view(final["block_pos"][i], final["block_quat"][i],
+                                           final["held"][i])
         panels = [
-            dict(top=start_top[i], height=start_height[i], path=steps.path[i],
-                 goal=steps.goal[i], title="t = 0, expert's first path"),
-            dict(top=end_top[i], height=end_height[i],
+            dict(top=top0, height=height0, path=first.path, goal=first.goal,
+                 title="t = 0, expert's first path"),
+            dict(top=top1, height=height1,
                  title=f"end ({int(final['placements'][i])} placements)"),
         ]
         paths.append(render.episode_figure(
-            os.path.join(out_dir, f"{spec.name}_{i:03d}.png"), panels, text))
+            os.path.join(out_dir, f"{spec.name}_{i:03d}.png"), panels,
+            grammar.decode(np.asarray(episode.tokens))))
     return paths
 
 

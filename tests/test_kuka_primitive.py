@@ -33,7 +33,9 @@ def placed():
     after = env.step_batch(states, actions)
     settled = physics.simulate_batch(after.data, 200)  # 1 s more
     get = jax.vmap(physics.block_pos)
+    yaw = jax.vmap(physics.block_yaw)
     return dict(episodes=episodes, actions=actions, pos0=pos0, after=after,
+                yaw0=np.asarray(yaw(states.data)), yaw2=np.asarray(yaw(settled)),
                 pos1=np.asarray(get(after.data)), pos2=np.asarray(get(settled)),
                 held=np.asarray(jax.vmap(physics.held)(settled)))
 
@@ -45,6 +47,8 @@ def test_block_put_on_another_stays(placed):
         assert kf.numpy_on(pos, placed["held"][i], top, bottom)
         assert np.hypot(*(pos[top, :2] - pos[bottom, :2])) < 0.01
         assert abs(pos[top, 2] - pos[bottom, 2] - 2 * scene.BLOCK_HALF_SIZE[2]) < 0.003
+        # Carried as it lay: the suction does not twist the block.
+        assert np.degrees(np.abs(placed["yaw2"][i] - placed["yaw0"][i])).max() < 2.0
         others = [b for b in range(4) if b != top]
         assert np.abs(pos[others] - placed["pos0"][i][others]).max() < 0.005
         # Settling one more second changes nothing.

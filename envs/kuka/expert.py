@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from envs.kuka import env, grid, physics, tasks
+from envs.kuka import env, grid, physics, success, tasks
 
 
 @struct.dataclass
@@ -36,22 +36,27 @@ class ExpertStep:
     relation: jax.Array
 
 
-def next_step(state: env.State) -> ExpertStep:
-    """The expert's next pick-and-place in a state (pure; vmap over episodes)."""
-    goal = state.episode.goal
+def decide(pos, held, episode) -> ExpertStep:
+    """The expert's next pick-and-place for block poses pos float (4, 3), held bool (4,) and the
+    episode's goal (pure; vmap over episodes)."""
+    goal = episode.goal
     valid = goal[:, 0] >= 0
-    on = env.on_matrix(state)
+    on = success.on_matrix(pos, held)
     holds = on[jnp.maximum(goal[:, 0], 0), jnp.maximum(goal[:, 1], 0)] | ~valid
     first = jnp.argmin(holds)  # the first relation that does not hold
     relation = jnp.where(holds.all(), goal.shape[0], first)
     last = jnp.maximum(valid.sum() - 1, 0)
     top, bottom = goal[jnp.where(holds.all(), last, first)]
-    pos = physics.block_pos(state.data)
     cells = grid.block_cells(pos)
     pick, place = cells[top], cells[bottom]
     return ExpertStep(action=jnp.concatenate([pick, place]).astype(jnp.int32), block=top,
                       support=bottom, path=grid.path_map(pos[top, :2], pos[bottom, :2]),
                       goal=place.astype(jnp.int32), relation=relation.astype(jnp.int32))
+
+
+def next_step(state: env.State) -> ExpertStep:
+    """The expert's next pick-and-place in a state (pure; vmap over episodes)."""
+    return decide(physics.block_pos(state.data), physics.held(state.data), state.episode)
 
 
 def act(state: env.State):

@@ -11,8 +11,8 @@ planar structure (:func:`planar_seed`): with joints 3 and 5 at zero the arm is a
 joints 2, 4, 6 in the vertical plane at azimuth q1, which a two-link solution places exactly;
 DLS then refines it (and moves joints 3 and 5 where joint 1 is at its limit). Joint 1 spans
 +-170 deg, so the arm reaches behind itself "flipped" (q1 = azimuth - pi, leaning backwards):
-:func:`choose_branch` picks the branch and the flange yaw for a whole carry path at once so that
-joints 1 and 7 move continuously along it.
+:func:`choose_branch` picks the branch for a whole carry path at once so that joints 1 and 7
+move continuously along it, the flange keeping the held block's yaw.
 """
 from __future__ import annotations
 
@@ -114,14 +114,16 @@ def planar_seed(target_pos, q1, yaw) -> jax.Array:
     return jnp.clip(q, -LIMITS, LIMITS).astype(jnp.float32)
 
 
-def choose_branch(points_xy):
+def choose_branch(points_xy, yaw=0.0):
     """Joint-1 angles and flange yaw for a path the flange follows pointing down.
 
-    points_xy float (P, 2). Returns (q1 float32 (P,), yaw float32 ()): q1 follows the points'
-    azimuths continuously (unwrapped), on the branch (facing them, or flipped by pi, leaning
-    backwards) and 2 pi shift that keep it farthest inside joint 1's limits; yaw is the
-    multiple of pi/2 nearest the middle of q1's range, so that q7 = q1 - yaw stays small along
-    the path and a square block held under the flange stays aligned with the world axes.
+    points_xy float (P, 2); yaw float (): the flange yaw wanted along the whole path (the held
+    block's yaw: the suction weld's relative pose is fixed, so the flange must match the block's
+    orientation when it grasps, and keeps it while carrying). Returns (q1 float32 (P,), yaw
+    float32 ()): q1 follows the points' azimuths continuously (unwrapped), on the branch (facing
+    them, or flipped by pi, leaning backwards) and 2 pi shift that keep it farthest inside joint
+    1's limits; yaw is the given one shifted by a multiple of 2 pi (the same orientation) to
+    keep q7 = q1 - yaw nearest zero along the path.
     """
     points_xy = jnp.asarray(points_xy)
     azimuth = jnp.arctan2(points_xy[:, 1], points_xy[:, 0])
@@ -135,8 +137,9 @@ def choose_branch(points_xy):
     worst = jnp.max(jnp.abs(candidates), axis=1)
     q1 = candidates[jnp.argmin(worst)]
     middle = 0.5 * (jnp.min(q1) + jnp.max(q1))
-    yaw = jnp.round(middle / (np.pi / 2)) * (np.pi / 2)
-    return q1.astype(jnp.float32), yaw.astype(jnp.float32)
+    yaws = jnp.asarray(yaw, jnp.float32) + 2 * np.pi * jnp.arange(-2, 3)
+    best = yaws[jnp.argmin(jnp.abs(middle - yaws))]
+    return q1.astype(jnp.float32), best.astype(jnp.float32)
 
 
 def solve_down(targets, q1, yaw, iterations: int = 12):

@@ -53,6 +53,12 @@ def block_quat(data) -> jax.Array:
     return q[:, 3:]
 
 
+def block_yaw(data) -> jax.Array:
+    """float (4,) each block's rotation about the world z (rad; its heading for flat blocks)."""
+    w, x, y, z = jnp.moveaxis(block_quat(data), -1, 0)
+    return jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
 def held(data) -> jax.Array:
     """bool (4,) the suction holds block i."""
     return data.eq_active.astype(bool)

@@ -9,8 +9,11 @@ primitive is one ``lax.scan`` of ``mjx.step``: it jits and vmaps over episodes.
 
 All joint targets are computed up front from the state at the call (the block's pose and the
 place target do not depend on what happens during the motion): a pointing-down IK solution
-(:mod:`envs.kuka.ik`) for every key pose, the branch and flange yaw chosen once for the whole
-carry (:func:`ik.choose_branch`), and the servo targets interpolated in joint space between key
+(:mod:`envs.kuka.ik`) for every key pose, the branch chosen once for the whole carry and the
+flange yaw set to the block's own (:func:`ik.choose_branch`: the weld's relative pose is fixed
+in the model, so the block is carried exactly as it lay; a block knocked far from its initial,
+world-aligned yaw can need joint 7 beyond its limit on some paths, where the IK clips it and
+the weld twists the block as it grasps), and the servo targets interpolated in joint space between key
 poses with a cosine ease over each phase. Phases that end in contact (the grasp and the place)
 hold their last pose for a few steps so that the servos settle to well under a millimetre.
 """
@@ -90,12 +93,14 @@ def plan(data, block, place_pos, waypoints_xy):
     ends replaced by the block's and the place's xy.
     Returns (ctrl float32 (NUM_STEPS, 7), weld bool (NUM_STEPS,), ik position error float ()).
     """
-    pos = physics.block_pos(data)[jnp.clip(block, 0, scene.NUM_BLOCKS - 1)]
+    index = jnp.clip(block, 0, scene.NUM_BLOCKS - 1)
+    pos = physics.block_pos(data)[index]
     pick = pos + jnp.array([0.0, 0.0, scene.BLOCK_HALF_SIZE[2]])
     place_pos = jnp.asarray(place_pos, jnp.float32)
     carry_xy = jnp.asarray(waypoints_xy, jnp.float32)
     carry_xy = carry_xy.at[0].set(pick[:2]).at[-1].set(place_pos[:2])
-    q1, yaw = ik.choose_branch(carry_xy)
+    # The flange matches the block's yaw: the weld then holds it as it lies (no twist on grasp).
+    q1, yaw = ik.choose_branch(carry_xy, physics.block_yaw(data)[index])
     up = jnp.array([0.0, 0.0, 1.0])
     carry = jnp.concatenate([carry_xy, jnp.full((carry_xy.shape[0], 1), CARRY_HEIGHT)], axis=1)
     ends = jnp.stack([pick + APPROACH_OFFSET * up, pick,
