@@ -19,6 +19,7 @@ the small kind of checkpoint shipped in the repository (EMA params + metadata on
 """
 from __future__ import annotations
 
+import hashlib
 import importlib
 import json
 import logging
@@ -33,6 +34,9 @@ import orbax.checkpoint as ocp
 
 __all__ = [
     "FORMAT",
+    "CorruptCheckpointError",
+    "CheckpointWriteError",
+    "verify_checkpoint",
     "save_checkpoint",
     "load_checkpoint",
     "latest_step",
@@ -49,6 +53,18 @@ __all__ = [
 
 FORMAT = "diffplan-checkpoint/1"
 MAX_TO_KEEP = 2
+DIGEST_FILE = "diffplan_digest.json"
+"""SHA-256 of every file of a saved step, written (atomically) once orbax has committed the
+step; loading verifies it, so a truncated or altered file is reported instead of loading
+silently wrong values (orbax alone does not notice a flipped byte in an array)."""
+
+
+class CorruptCheckpointError(ValueError):
+    """A checkpoint step exists but cannot be read back as it was written."""
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint could not be written (e.g. the disk is full); nothing of it was kept."""
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -147,6 +163,57 @@ def latest_step(directory: str) -> Optional[int]:
     """The newest committed checkpoint step in ``directory``, or None."""
     steps = all_steps(directory)
     return steps[-1] if steps else None
+
+
+def _file_digests(step_dir: str) -> dict[str, str]:
+    out = {}
+    for root, _, files in os.walk(step_dir):
+        for name in files:
+            path = os.path.join(root, name)
+            rel = os.path.relpath(path, step_dir)
+            if rel.startswith(DIGEST_FILE):  # the digest itself (or a torn write of it)
+                continue
+            h = hashlib.sha256()
+            with open(path, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+            out[rel] = h.hexdigest()
+    return out
+
+
+def _write_digest(step_dir: str) -> None:
+    digests = _file_digests(step_dir)
+    tmp = os.path.join(step_dir, DIGEST_FILE + ".tmp")
+    with open(tmp, "w") as f:
+        json.dump(digests, f, indent=0, sort_keys=True)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, os.path.join(step_dir, DIGEST_FILE))
+
+
+def verify_checkpoint(directory: str, step: Optional[int] = None) -> int:
+    """Checks step ``step`` (default: the latest) of ``directory`` against its digest; returns
+    the step. Raises FileNotFoundError (no such step) or CorruptCheckpointError (a file is
+    missing, truncated or altered). Steps written before digests existed are accepted."""
+    step = _resolve_step(directory, step)
+    step_dir = os.path.join(directory, str(step))
+    digest_path = os.path.join(step_dir, DIGEST_FILE)
+    if not os.path.exists(digest_path):
+        return step
+    try:
+        with open(digest_path) as f:
+            expected = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise CorruptCheckpointError(f"checkpoint {directory!r} step {step}: its digest is "
+                                     f"unreadable ({e})") from e
+    found = _file_digests(step_dir)
+    bad = sorted(k for k in expected if found.get(k) != expected[k])
+    if bad:
+        what = ", ".join(f"{k} ({'missing' if k not in found else 'altered'})" for k in bad[:3])
+        raise CorruptCheckpointError(
+            f"checkpoint {directory!r} step {step} is corrupted: {what}"
+            + (f" and {len(bad) - 3} more files" if len(bad) > 3 else ""))
+    return step
 
 
 def _resolve_step(directory: str, step: Optional[int]) -> int:
@@ -253,17 +320,50 @@ def save_checkpoint(directory: str, step: int, state: Any, metadata: Mapping[str
     with _manager(directory, max_to_keep=max_to_keep) as m:
         if step in m.all_steps():
             raise ValueError(f"checkpoint step {step} already exists in {directory!r}")
-        m.save(step, args=ocp.args.Composite(**items), force=True)
-        m.wait_until_finished()
-        return str(m.directory / str(step))
+        step_dir = str(m.directory / str(step))
+        try:
+            m.save(step, args=ocp.args.Composite(**items), force=True)
+            m.wait_until_finished()
+            _write_digest(step_dir)
+        except Exception as e:  # noqa: BLE001 - any failure: nothing of this step is kept
+            _remove_partial(directory, step)
+            older = [s for s in all_steps(directory) if s != step]
+            raise CheckpointWriteError(
+                f"could not write checkpoint step {step} to {directory!r} "
+                f"({type(e).__name__}: {str(e).splitlines()[0][:200]}); "
+                + (f"the last good checkpoint is step {older[-1]}" if older else
+                   "no earlier checkpoint exists")) from e
+        return step_dir
+
+
+def _remove_partial(directory: str, step: int) -> None:
+    """Deletes what a failed save of ``step`` left behind (orbax's temporary directory, or a
+    committed step without its digest)."""
+    for name in os.listdir(directory):
+        if name == str(step) or name.startswith(f"{step}.orbax-checkpoint-tmp"):
+            shutil.rmtree(os.path.join(directory, name), ignore_errors=True)
+
+
+def _restore(manager, directory: str, step: int, args):
+    """manager.restore, with orbax's and tensorstore's read errors as CorruptCheckpointError."""
+    try:
+        return manager.restore(step, args=args)
+    except Exception as e:  # noqa: BLE001 - orbax/tensorstore raise many kinds
+        raise CorruptCheckpointError(
+            f"checkpoint {directory!r} step {step} cannot be read ({type(e).__name__}: "
+            f"{str(e).splitlines()[0][:160] if str(e) else ''})") from e
 
 
 def read_metadata(directory: str, step: Optional[int] = None) -> dict:
     """The JSON metadata of checkpoint ``step`` (default: the latest)."""
-    step = _resolve_step(directory, step)
-    with _manager(directory, read_only=True) as m:
-        out = m.restore(step, args=ocp.args.Composite(metadata=ocp.args.JsonRestore()))
-    meta = dict(out["metadata"])
+    step = verify_checkpoint(directory, step)
+    try:
+        with _manager(directory, read_only=True) as m:
+            out = m.restore(step, args=ocp.args.Composite(metadata=ocp.args.JsonRestore()))
+    except Exception as e:  # noqa: BLE001 - orbax/tensorstore raise many kinds
+        raise CorruptCheckpointError(f"checkpoint {directory!r} step {step}: its metadata "
+                                     f"cannot be read ({type(e).__name__})") from e
+    meta = dict(out.get("metadata") or {})
     if meta.get("format") != FORMAT:
         raise ValueError(f"checkpoint {directory!r} step {step} has format "
                          f"{meta.get('format')!r}, expected {FORMAT!r}")
@@ -296,9 +396,13 @@ def load_checkpoint(directory: str, step: Optional[int] = None, *, target: Any =
 
     step = _resolve_step(directory, step)
     sharding = sharding or jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    metadata = read_metadata(directory, step)
+    metadata = read_metadata(directory, step)  # verifies the digest
     with _manager(directory, read_only=True) as m:
-        item_meta = m.item_metadata(step)
+        try:
+            item_meta = m.item_metadata(step)
+        except Exception as e:  # noqa: BLE001
+            raise CorruptCheckpointError(f"checkpoint {directory!r} step {step}: its array "
+                                         f"metadata cannot be read ({type(e).__name__})") from e
         has_train = metadata.get("kind") == "train"
         if target is None:
             items = {"ema_params": ocp.args.StandardRestore(
@@ -306,7 +410,7 @@ def load_checkpoint(directory: str, step: Optional[int] = None, *, target: Any =
             if has_train:
                 items["train_state"] = ocp.args.StandardRestore(
                     _abstract_from_metadata(item_meta["train_state"], sharding))
-            out = m.restore(step, args=ocp.args.Composite(**items))
+            out = _restore(m, directory, step, ocp.args.Composite(**items))
             result = {"ema_params": out["ema_params"]}
             if has_train:
                 ts = dict(out["train_state"])
@@ -332,7 +436,7 @@ def load_checkpoint(directory: str, step: Optional[int] = None, *, target: Any =
         if problems:
             raise ValueError(f"checkpoint {directory!r} step {step} does not match the target "
                              "state: " + "; ".join(problems))
-        out = m.restore(step, args=ocp.args.Composite(
+        out = _restore(m, directory, step, ocp.args.Composite(
             ema_params=ocp.args.StandardRestore(abstract.ema_params),
             train_state=ocp.args.StandardRestore(ts_target)))
     ts = out["train_state"]

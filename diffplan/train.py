@@ -31,6 +31,7 @@ import json
 import math
 import os
 import time
+import warnings
 from typing import Any, Callable, Mapping, NamedTuple, Optional
 
 import flax.struct
@@ -48,6 +49,7 @@ __all__ = [
     "TrainState",
     "TrainResult",
     "NonFiniteLossError",
+    "OutputWriteError",
     "ConfigMismatchError",
     "lr_schedule",
     "make_optimizer",
@@ -85,6 +87,11 @@ class NonFiniteLossError(RuntimeError):
         super().__init__(message)
         self.step = step
         self.last_checkpoint_step = last_checkpoint_step
+
+
+class OutputWriteError(OSError):
+    """Training could not write its metrics log (e.g. the disk is full); the checkpoints saved
+    before are intact."""
 
 
 class ConfigMismatchError(ValueError):
@@ -562,6 +569,38 @@ def _check_resume(meta: dict, requested: dict, out_dir: str) -> None:
             + ". Use a new out_dir or the stored settings.")
 
 
+def _resume(out_dir: str, init_fn, metadata: dict, repl):
+    """(step, state, stored metadata) of the newest readable checkpoint in out_dir, or
+    (None, None, None) if there is none. A corrupted newer checkpoint is reported, moved aside
+    (renamed ``corrupt-<step>-<time>``) and the previous one is used."""
+    steps = ckpt.all_steps(out_dir)
+    damaged = []
+    for step in reversed(steps):
+        try:
+            stored = ckpt.read_metadata(out_dir, step)
+            _check_resume(stored, ckpt.config_to_dict(metadata), out_dir)
+            abstract = jax.eval_shape(init_fn)
+            abstract = jax.tree_util.tree_map(
+                lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=repl), abstract)
+            state, _ = ckpt.load_checkpoint(out_dir, step, target=abstract)
+        except ckpt.CorruptCheckpointError as e:
+            damaged.append((step, e))
+            continue
+        if int(state.step) != step:
+            raise ValueError(f"checkpoint {step} in {out_dir!r} holds step {int(state.step)}")
+        for bad, error in damaged:
+            aside = os.path.join(out_dir, f"corrupt-{bad}-{int(time.time())}")
+            os.replace(os.path.join(out_dir, str(bad)), aside)
+            warnings.warn(f"{error}; moved it to {aside} and resumed from step {step}",
+                          stacklevel=3)
+        return step, state, stored
+    if damaged:
+        raise ckpt.CorruptCheckpointError(
+            f"no readable checkpoint in {out_dir!r} (" + "; ".join(str(e) for _, e in damaged)
+            + "): delete the directory to start over")
+    return None, None, None
+
+
 def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, out_dir: str, *,
           init_batch: Optional[Batch] = None, progress: bool = True,
           extra_metadata: Optional[Mapping[str, Any]] = None,
@@ -618,19 +657,10 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
     _static(model, "model")
     _static(batch_fn, "batch_fn")
     init_fn = lambda: init_train_state(model, cfg, init_batch)  # noqa: E731
-    last_ckpt = ckpt.latest_step(out_dir)
+    last_ckpt, state, stored = _resume(out_dir, init_fn, metadata, repl)
     wall_before = 0.0
-    if last_ckpt is not None:
-        stored = ckpt.read_metadata(out_dir, last_ckpt)
-        _check_resume(stored, ckpt.config_to_dict(metadata), out_dir)
-        abstract = jax.eval_shape(init_fn)
-        abstract = jax.tree_util.tree_map(
-            lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=repl), abstract)
-        state, _ = ckpt.load_checkpoint(out_dir, last_ckpt, target=abstract)
+    if state is not None:
         wall_before = float(stored.get("wall_time", 0.0))
-        if int(state.step) != last_ckpt:
-            raise ValueError(f"checkpoint {last_ckpt} in {out_dir!r} holds step "
-                             f"{int(state.step)}")
     else:
         state = shd.replicate(init_fn(), mesh)
     start = int(state.step)
@@ -706,8 +736,14 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
                 final_loss = record["loss"]
                 last_record = record
                 t_last, step_last = time.perf_counter(), done
-                with open(metrics_path, "a") as f:
-                    f.write(json.dumps(record) + "\n")
+                try:
+                    with open(metrics_path, "a") as f:
+                        f.write(json.dumps(record) + "\n")
+                except OSError as e:
+                    raise OutputWriteError(
+                        f"could not append to {metrics_path} ({e.strerror or e}); "
+                        + (f"the last good checkpoint is step {last_ckpt}" if last_ckpt
+                           is not None else "no checkpoint had been saved yet")) from e
                 if writer is not None:
                     for k, v in record.items():
                         if k != "step":
