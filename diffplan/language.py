@@ -58,9 +58,14 @@ class Vocabulary:
     def encode(self, text: str, max_tokens: int) -> np.ndarray:
         """text -> int32 (max_tokens,) ids padded with 0.
 
-        Raises ValueError naming every word outside the vocabulary, or if the text is too long.
+        Raises ValueError naming every word outside the vocabulary, if the text is empty, or
+        if it is too long.
         """
+        if not isinstance(text, str):
+            raise ValueError(f"an instruction must be a str, got {type(text).__name__}")
         words = split_words(text)
+        if not words:
+            raise ValueError("the instruction is empty")
         unknown = sorted({w for w in words if w not in self.word_to_id or w in self.specials})
         if unknown:
             raise ValueError(f"instruction has words outside the vocabulary: {unknown}")
