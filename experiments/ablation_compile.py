@@ -19,7 +19,6 @@ import argparse
 import dataclasses
 import json
 import os
-import sys
 
 from diffplan.jax_cache import enable_compilation_cache
 from experiments import compile_common as cc
@@ -61,8 +60,18 @@ def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
     settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
-    if args.episodes < 1 or any(s not in SETTINGS for s in settings) or not settings:
-        parser.error(f"need --episodes >= 1 and --settings among {SETTINGS}")
+    if any(s not in SETTINGS for s in settings) or not settings:
+        parser.error(f"--settings must be a comma-separated list of {SETTINGS}, got "
+                     f"{args.settings!r}")
+    from experiments import cli
+    cli.check_at_least(parser, "--episodes", args.episodes, 1)
+    cli.check_at_least(parser, "--batch-size", args.batch_size, 1)
+    cli.check_at_least(parser, "--train-steps", args.train_steps, 2)
+    cli.check_at_least(parser, "--num-steps", args.num_steps, 1)
+    cli.check_at_least(parser, "--seed", args.seed, 0)
+    cli.check_output_file(parser, "--json", args.json)
+    if args.main_checkpoint is not None and not os.path.isdir(args.main_checkpoint):
+        parser.error(f"--main-checkpoint {args.main_checkpoint!r} is not a directory")
     enable_compilation_cache()
     progress = not args.no_progress
     models = {}
@@ -79,11 +88,8 @@ def main(argv=None):
             if args.train:
                 cc.train_setting(spec, checkpoint, steps=args.train_steps, progress=progress,
                                  model_size=args.model_size)
-        try:
-            models[key], _ = cc.load_model(checkpoint)
-        except FileNotFoundError:
-            print(f"No checkpoint in {checkpoint}: run with --train.", file=sys.stderr)
-            raise SystemExit(2)
+        models[key] = cc.load_checked(checkpoint, spec, ("one_shot", "on_the_fly"), parser,
+                                      "python -m experiments.ablation_compile --train")
 
     rows = []
     for setting in settings:

@@ -532,16 +532,19 @@ def fail(message: str, code: int = 2):
     raise SystemExit(code)
 
 
-def load_checked(checkpoint: str, spec: ExperimentSpec, modes, parser):
+def load_checked(checkpoint: str, spec: ExperimentSpec, modes, parser,
+                 train_command: str | None = None):
     """The checkpoint's LoadedDenoiser, checked against the grid world and the requested step
-    counts; one-line errors for a missing, unreadable or mismatched checkpoint."""
+    counts; one-line errors for a missing, unreadable or mismatched checkpoint (naming
+    train_command, default the setting's `--train`, as the way to get one)."""
     from envs.gridworld.task import NUM_COND_CHANNELS
 
     try:
         denoiser, _ = load_model(checkpoint)
     except FileNotFoundError:
-        fail(f"no checkpoint in {checkpoint}: train one with `python -m experiments."
-             f"{spec.name} --train` (or pass --checkpoint DIR)")
+        command = train_command or f"python -m experiments.{spec.name} --train"
+        fail(f"no checkpoint in {checkpoint}: train one with `{command}` (or pass another "
+             "checkpoint directory)")
     except ValueError as e:
         fail(f"cannot read the checkpoint {checkpoint}: {e}")
     size = spec.grid_config().size

@@ -75,12 +75,26 @@ def main(argv=None):
                         "on the machine during training); repeatable")
     p.add_argument("--overwrite", action="store_true", help="replace an existing export")
     args = p.parse_args(argv)
-    from diffplan.checkpoint import export_eval_checkpoint
-    export_eval_checkpoint(args.train_dir, args.out, overwrite=args.overwrite)
+    from diffplan.checkpoint import CorruptCheckpointError, export_eval_checkpoint, latest_step
+    from experiments import cli
+    if latest_step(args.train_dir) is None:
+        p.error(f"--train-dir {args.train_dir!r} holds no checkpoint")
+    cli.check_output_dir(p, "--out", args.out)
     results = []
     for path in args.results:
-        with open(path) as f:
-            results.append(json.load(f))
+        try:
+            with open(path) as f:
+                results.append(json.load(f))
+        except (OSError, json.JSONDecodeError) as e:
+            p.error(f"--results {path!r} cannot be read as JSON: {e}")
+        if not isinstance(results[-1], dict) or "rows" not in results[-1]:
+            p.error(f"--results {path!r} is not an experiment's results JSON (no 'rows')")
+    try:
+        export_eval_checkpoint(args.train_dir, args.out, overwrite=args.overwrite)
+    except CorruptCheckpointError as e:
+        p.error(str(e))
+    except ValueError as e:
+        p.error(str(e))
     write_note(args.out, args.train_dir, results, args.command, args.remark)
     print(f"wrote {args.out} and its NOTE.md")
 
