@@ -33,17 +33,9 @@ import warnings
 
 import numpy as np
 
+from experiments.bench_gridworld import _int_list  # comma-separated positive integers
+
 warnings.filterwarnings("ignore", "overflow encountered in cast")
-
-
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"batch sizes must be >= 1, got {text!r}")
-    return values
 
 
 def build_parser() -> argparse.ArgumentParser:

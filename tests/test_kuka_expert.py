@@ -31,6 +31,27 @@ def test_expert_satisfies_every_instructed_constraint(column):
     assert frames.shape[:2] == (kf.BATCH, tasks.MAX_STEPS)
 
 
+def test_planned_poses_are_where_physics_puts_the_blocks():
+    """The expert's plan without physics: at every stage it decides as on the physical state,
+    and its final poses match the physical ones within 1 cm."""
+    episodes = kf.episodes("stacking_multi", 11)
+    final, _ = kf.expert_run("stacking_multi", 11)
+    pos = np.asarray(jax.vmap(physics.block_pos)(final.data))
+    for i in range(kf.BATCH):
+        episode = jax.tree.map(lambda x: x[i], episodes)
+        for k in range(4):
+            planned = np.asarray(expert.planned_poses(episode, k))
+            step = expert.decide(planned, np.zeros(4, bool), episode)
+            assert int(step.relation) == k
+        np.testing.assert_allclose(planned, pos[i], atol=0.01)
+    states = env.reset_batch(episodes)
+    start = jax.vmap(expert.planned_poses)(episodes, np.zeros(kf.BATCH, np.int32))
+    np.testing.assert_allclose(np.asarray(start), np.asarray(jax.vmap(physics.block_pos)(
+        states.data)), atol=1e-6)
+    cells = np.asarray(jax.vmap(env.flange_cell)(states))
+    assert (cells >= 0).all() and (cells < grid.GRID_SIZE).all()
+
+
 def test_expert_targets_on_the_grid():
     """The first step of each episode: the path runs from the moved block's cell to the place
     cell (the support's), around the base; the action picks and places those cells."""

@@ -77,6 +77,12 @@ def view(state: State):
     return grid.view_of(state.data)
 
 
+def flange_cell(state: State):
+    """int32 (2,): the grid cell under the arm's flange (the end effector's position on the
+    planner's map)."""
+    return grid.xy_to_cell(state.data.xpos[physics.flange_id(), :2])
+
+
 def resolve(data, action):
     """What an action means in this physical state.
 

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from envs.kuka import env, grid, physics, success, tasks
+from envs.kuka import env, grid, physics, scene, success, tasks
 
 
 @struct.dataclass
@@ -57,6 +57,22 @@ def decide(pos, held, episode) -> ExpertStep:
 def next_step(state: env.State) -> ExpertStep:
     """The expert's next pick-and-place in a state (pure; vmap over episodes)."""
     return decide(physics.block_pos(state.data), physics.held(state.data), state.episode)
+
+
+def planned_poses(episode, num_built):
+    """float32 (4, 3) block centres after the first num_built (int ()) goal relations are built
+    exactly (each top block centred one block height above its support), the rest flat where
+    they started: the states along the expert's plan without physics (e.g. for training data;
+    :func:`decide` works on them with nothing held)."""
+    half = scene.BLOCK_HALF_SIZE[2]
+    pos = jnp.concatenate([jnp.asarray(episode.block_xy, jnp.float32),
+                           jnp.full((scene.NUM_BLOCKS, 1), half, jnp.float32)], axis=1)
+    for k in range(episode.goal.shape[0]):  # build order: every support is in place already
+        top, bottom = episode.goal[k]
+        moved = pos.at[jnp.maximum(top, 0)].set(pos[jnp.maximum(bottom, 0)]
+                                                + jnp.array([0.0, 0.0, 2 * half]))
+        pos = jnp.where((k < num_built) & (top >= 0), moved, pos)
+    return pos
 
 
 def act(state: env.State):
