@@ -1,0 +1,102 @@
+"""The trained baselines as policies for :func:`diffplan.baselines.rollout.policy_rollout`:
+shipping (training run -> small evaluation checkpoint) and loading.
+
+Layout of a shipped baseline (``checkpoints/baselines/<name>/``): ``bc/`` and ``cql/`` are
+evaluation checkpoints (``diffplan.checkpoint``: the trained network's parameters -- for CQL the
+online Q-network, not the target -- and the run's metadata); ``dd/diffusion/`` holds the
+diffusion model's EMA parameters and ``dd/inverse_dynamics/`` the inverse dynamics'.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from diffplan import checkpoint as ckpt
+from diffplan.baselines import common, dd
+
+__all__ = ["BASELINES", "METHOD_NAMES", "LoadedPolicy", "load_policy", "export_params"]
+
+BASELINES = ("bc", "cql", "dd")
+METHOD_NAMES = {"bc": "BC", "cql": "CQL", "dd": "DD-style"}
+DD_PARTS = ("diffusion", "inverse_dynamics")
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadedPolicy:
+    """What policy_rollout needs of a trained baseline: act_fn, params, calls_per_move,
+    plan_channels (None: no plan), and the row's method name."""
+
+    method: str
+    act_fn: Callable
+    params: Any
+    calls_per_move: int = 0
+    plan_channels: int | None = None
+
+
+def export_params(train_dir: str, out_dir: str, *, ema: bool = False) -> str:
+    """Writes the latest training checkpoint of ``train_dir`` as an evaluation checkpoint in
+    ``out_dir`` (replacing what is there): its params (ema=False) or EMA params, float32, with
+    the run's metadata. Returns the step directory."""
+    if ema:
+        return ckpt.export_eval_checkpoint(train_dir, out_dir, overwrite=True)
+    raw, metadata = ckpt.load_checkpoint(train_dir)
+    if "train_state" not in raw:
+        raise ValueError(f"{train_dir!r} holds no training state to export params from")
+    params = jax.tree.map(lambda x: np.asarray(x, np.float32), raw["train_state"]["params"])
+    for s in ckpt.all_steps(out_dir):
+        shutil.rmtree(os.path.join(out_dir, str(s)))
+    meta = {k: v for k, v in metadata.items() if k not in ("kind", "format", "step")}
+    meta["exported_from"] = {"directory": os.path.abspath(train_dir), "step": metadata["step"],
+                             "params": "params"}
+    return ckpt.save_checkpoint(out_dir, metadata["step"], params, meta, max_to_keep=None)
+
+
+def _load_checked(directory: str, model, example_args) -> tuple[Any, dict]:
+    """Params and metadata of an evaluation checkpoint, checked against the model's shapes."""
+    params, metadata = ckpt.load_params_for_eval(directory)
+    expected = jax.eval_shape(lambda: model.init(jax.random.PRNGKey(0), *example_args))
+    problems = ckpt.compare_param_shapes(params, expected["params"])
+    if problems:
+        raise ValueError(f"checkpoint {directory!r} does not fit its model: "
+                         + "; ".join(problems))
+    return params, metadata
+
+
+def load_policy(name: str, directory: str, *, dd_num_steps: int = 10,
+                dd_guidance: float = 1.0) -> LoadedPolicy:
+    """The shipped baseline ``name`` (one of BASELINES) from its directory. Raises
+    FileNotFoundError when there is no checkpoint, ValueError when it does not fit."""
+    import jax.numpy as jnp
+
+    if name not in BASELINES:
+        raise ValueError(f"unknown baseline {name!r}; expected one of {BASELINES}")
+    if name in ("bc", "cql"):
+        meta = ckpt.read_metadata(directory)
+        net = common.ConvNetConfig.from_dict(meta["model_config"])
+        model = common.GoalConvNet(net)
+        shapes = meta["input_shapes"]
+        params, _ = _load_checked(directory, model,
+                                  (jnp.zeros(shapes["condition"], jnp.float32),
+                                   jnp.zeros(shapes["tokens"], jnp.int32)))
+        return LoadedPolicy(METHOD_NAMES[name], common.greedy_act(model), params)
+    diffusion_dir, id_dir = (os.path.join(directory, part) for part in DD_PARTS)
+    meta = ckpt.read_metadata(diffusion_dir)
+    model_config = dd.DDConfig.from_dict(meta["model_config"])
+    diffusion_params, _ = ckpt.load_params_for_eval(diffusion_dir, model_config)
+    train_config = meta["train_config"]
+    den = dd.denoiser(diffusion_params, model_config, train_config["prediction"],
+                      int(train_config["num_train_timesteps"]))
+    id_meta = ckpt.read_metadata(id_dir)
+    id_config = dd.IDConfig.from_dict(id_meta["model_config"])
+    z = jnp.zeros((1, model_config.cells), jnp.float32)
+    id_params, _ = _load_checked(id_dir, dd.InverseDynamics(id_config), (z, z))
+    policy = dd.DDPolicy(model_config, id_config, num_steps=dd_num_steps,
+                         guidance=dd_guidance)
+    return LoadedPolicy(METHOD_NAMES[name], policy,
+                        {"denoiser": den, "inverse_dynamics": id_params},
+                        calls_per_move=policy.calls_per_move, plan_channels=1)

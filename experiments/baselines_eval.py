@@ -1,0 +1,215 @@
+"""The baselines' rows of the CompILE tables (BC, CQL, DD-style; the paper's Table 1), measured
+exactly as our planner's: the same seeded evaluation episodes (``compile_common.eval_episodes``),
+the executed trajectories with collisions (``diffplan.baselines.rollout.policy_rollout``), the
+same ``compile_common.metrics_row`` (plus 95% intervals and per-seed values for several seeds).
+
+    python -m experiments.baselines_eval --settings 1o1g,mo1g,p_mo2g --seeds 2001,2002,2003
+
+``baseline_rows(setting, seeds, episodes, batch_size, progress)`` is what
+``experiments.compile_common`` calls for its ``--baselines`` rows. The shipped checkpoints are
+``checkpoints/baselines/{bc,cql,dd}`` (``experiments.train_baselines`` makes them).
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import sys
+import time
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments import compile_common as cc
+
+CHECKPOINT_DIR = os.path.join(cc.CHECKPOINT_ROOT, "baselines")
+PLAN_FIELDS = ("plan_precision", "plan_recall", "plan_f1")
+DEFAULT_DD_NUM_STEPS = 10
+DEFAULT_DD_GUIDANCE = 1.0
+
+
+@functools.lru_cache(maxsize=None)
+def _runner(task, act_fn, calls_per_move: int, plan_channels):
+    """jitted (params, keys, episodes) -> Rollout of one policy (cached: one compilation per
+    task and architecture)."""
+    from diffplan.baselines.rollout import policy_rollout
+
+    return jax.jit(lambda params, keys, episodes: policy_rollout(
+        task, act_fn, params, keys, episodes, calls_per_move=calls_per_move,
+        plan_channels=plan_channels))
+
+
+def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress: bool = True,
+                    desc: str = ""):
+    """Runs a LoadedPolicy on the episodes (N) in calls of batch_size; episode i uses the key
+    fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), as our planner's evaluation does.
+    Returns (Rollout of numpy arrays, seconds)."""
+    from tqdm import tqdm
+
+    n = int(np.shape(episodes.tokens)[0])
+    run = _runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels)
+    root = jax.random.fold_in(jax.random.PRNGKey(seed), cc.ROLLOUT_STREAM)
+    per_call = min(n, batch_size)
+    outs = []
+    start = time.time()
+    with tqdm(total=n, desc=desc, unit="ep", disable=not progress, file=sys.stderr,
+              dynamic_ncols=True) as bar:
+        for lo in range(0, n, per_call):
+            idx = np.arange(lo, min(n, lo + per_call))
+            chunk = jax.tree.map(lambda x: x[idx], episodes)
+            keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.asarray(idx))
+            pad = per_call - len(idx)
+            if pad:  # the last call padded to the compiled size; padding results dropped
+                chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
+                keys = jnp.concatenate([keys, keys[:pad]])
+            out = jax.device_get(run(policy.params, keys, chunk))
+            outs.append(jax.tree.map(lambda x: x[:len(idx)], out))
+            bar.update(len(idx))
+    return cc.concat_trees(outs), time.time() - start
+
+
+def _row(policy, rollout, episodes, seconds, has_reference):
+    row = cc.metrics_row(policy.method, rollout, episodes, seconds, has_reference)
+    if policy.plan_channels is None:  # no plan: the plan metrics would be meaningless zeros
+        for key in PLAN_FIELDS:
+            row.pop(key)
+    return row
+
+
+def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_size: int,
+                  progress: bool, *, checkpoint_root: str | None = None,
+                  methods: Sequence[str] | None = None,
+                  dd_num_steps: int = DEFAULT_DD_NUM_STEPS,
+                  dd_guidance: float = DEFAULT_DD_GUIDANCE,
+                  episodes_by_seed: dict | None = None) -> list[dict]:
+    """One metrics row per baseline ("BC", "CQL", "DD-style") on ``episodes`` evaluation
+    episodes of each seed (pooled; with several seeds also SR_ci95 and per_seed values, as
+    compile_common.main writes them), from the shipped checkpoints under checkpoint_root
+    (default checkpoints/baselines). episodes_by_seed: {seed: Episode batch} already generated
+    with compile_common.eval_episodes (default: generated here). Raises FileNotFoundError
+    when a checkpoint is missing."""
+    from diffplan.baselines.policies import BASELINES, load_policy
+    from envs.gridworld.config import make_config
+    from envs.gridworld.task import GridTask
+
+    root = CHECKPOINT_DIR if checkpoint_root is None else checkpoint_root
+    grid_config = make_config(setting)
+    task = GridTask(grid_config)
+    has_reference = grid_config.has_reference
+    per_seed = {seed: (episodes_by_seed or {}).get(seed) for seed in seeds}
+    per_seed = {seed: cc.eval_episodes(grid_config, episodes, seed) if eps is None else eps
+                for seed, eps in per_seed.items()}
+    pooled = cc.concat_trees(list(per_seed.values()))
+    rows = []
+    for name in (BASELINES if methods is None else methods):
+        policy = load_policy(name, os.path.join(root, name), dd_num_steps=dd_num_steps,
+                             dd_guidance=dd_guidance)
+        outs = [evaluate_policy(policy, task, eps, seed, batch_size, progress,
+                                f"{setting} {policy.method} (seed {seed})")
+                for seed, eps in per_seed.items()]
+        rollout = cc.concat_trees([r for r, _ in outs])
+        row = _row(policy, rollout, pooled, sum(t for _, t in outs), has_reference)
+        if len(seeds) > 1:
+            cc.add_intervals(row, rollout, pooled, has_reference)
+            row["per_seed"] = {}
+            for (seed, eps), (r, t) in zip(per_seed.items(), outs):
+                single = _row(policy, r, eps, t, has_reference)
+                row["per_seed"][str(seed)] = {k: single[k] for k in cc.PER_SEED_FIELDS
+                                              if k in single}
+        rows.append(row)
+    return rows
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m experiments.baselines_eval",
+        description="Evaluate the shipped baselines (BC, CQL, DD-style) on the CompILE grid "
+                    "world, measured on executed trajectories exactly as our planner is.")
+    p.add_argument("--settings", default="1o1g,mo1g,p_mo2g",
+                   help="comma-separated settings (default all three)")
+    p.add_argument("--episodes", type=int, default=1000,
+                   help="evaluation episodes per seed (default 1000)")
+    p.add_argument("--seed", type=int, default=cc.DEFAULT_EVAL_SEED,
+                   help=f"evaluation seed (default {cc.DEFAULT_EVAL_SEED}); episode i is "
+                        "generate(fold_in(PRNGKey(seed), i))")
+    p.add_argument("--seeds", metavar="S1,S2,...", default=None,
+                   help="several seeds, pooled with 95%% intervals and per-seed values (the "
+                        f"README uses {','.join(map(str, cc.EVALUATION_SEEDS))}; "
+                        f"{cc.VALIDATION_SEED} is the validation seed)")
+    p.add_argument("--methods", default="bc,cql,dd",
+                   help="comma-separated baselines among bc,cql,dd (default all)")
+    p.add_argument("--checkpoint-root", metavar="DIR", default=CHECKPOINT_DIR,
+                   help="directory holding bc/, cql/ and dd/ (default checkpoints/baselines)")
+    p.add_argument("--batch-size", type=int, default=250,
+                   help="episodes per jitted call (default 250)")
+    p.add_argument("--dd-num-steps", type=int, default=DEFAULT_DD_NUM_STEPS,
+                   help=f"DDIM steps per move of the DD-style planner (default "
+                        f"{DEFAULT_DD_NUM_STEPS})")
+    p.add_argument("--dd-guidance", type=float, default=DEFAULT_DD_GUIDANCE,
+                   help="classifier-free guidance weight of the DD-style planner (1: the "
+                        f"conditional model alone; default {DEFAULT_DD_GUIDANCE})")
+    p.add_argument("--json", metavar="PATH",
+                   help="write the rows (contract 2; each row names its setting)")
+    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    from diffplan.baselines.policies import BASELINES
+    from diffplan.jax_cache import enable_compilation_cache
+    from envs.gridworld.config import SETTINGS
+    from experiments import cli
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    seeds = cc.parse_seeds(parser, args)
+    settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    if not settings or any(s not in SETTINGS for s in settings):
+        parser.error(f"--settings must be among {','.join(SETTINGS)}, got {args.settings!r}")
+    if not methods or any(m not in BASELINES for m in methods):
+        parser.error(f"--methods must be among {','.join(BASELINES)}, got {args.methods!r}")
+    for flag, value in (("--episodes", args.episodes), ("--batch-size", args.batch_size),
+                        ("--dd-num-steps", args.dd_num_steps)):
+        cli.check_at_least(parser, flag, value, 1)
+    if not args.dd_guidance >= 0:
+        parser.error(f"--dd-guidance must be >= 0, got {args.dd_guidance}")
+    cli.check_output_file(parser, "--json", args.json)
+    for m in methods:
+        if not os.path.isdir(os.path.join(args.checkpoint_root, m)):
+            cc.fail(f"no {m} checkpoint in {args.checkpoint_root}: train and ship it with "
+                    "`python -m experiments.train_baselines --ship`")
+    enable_compilation_cache()
+    start = time.time()
+    rows = []
+    for setting in settings:
+        setting_rows = baseline_rows(setting, seeds, args.episodes, args.batch_size,
+                                     not args.no_progress, checkpoint_root=args.checkpoint_root,
+                                     methods=methods, dd_num_steps=args.dd_num_steps,
+                                     dd_guidance=args.dd_guidance)
+        print(f"\n{setting}: {args.episodes} episodes per seed, seed(s) "
+              f"{','.join(map(str, seeds))}")
+        print(cc.format_table(setting_rows))
+        if len(seeds) > 1:
+            print(cc.format_intervals(setting_rows, seeds))
+        rows += [{"setting": setting, **row} for row in setting_rows]
+    result = {"experiment": "baselines_eval", "episodes": args.episodes, "seed": seeds[0],
+              "seeds": list(seeds), "validation": cc.VALIDATION_SEED in seeds,
+              "settings": list(settings), "dd_num_steps": args.dd_num_steps,
+              "dd_guidance": args.dd_guidance, "seconds": time.time() - start,
+              "machine": f"{os.cpu_count()} CPU cores, jax {jax.__version__} on "
+                         f"{jax.devices()[0].platform}",
+              "rows": rows}
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+        print(f"wrote {args.json}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

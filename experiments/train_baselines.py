@@ -1,0 +1,263 @@
+"""Trains the CompILE baselines (BC, CQL, the DD-style planner) and ships them.
+
+    python -m experiments.train_baselines                 # train all three (resumes)
+    python -m experiments.train_baselines --ship --results results/baselines.json
+
+One model per baseline serves the three settings (trained on the planner's mixture of them,
+``envs.gridworld.training.TRAINING_MIXTURE``), as one denoiser does. Runs go to
+``runs/baselines/<name>`` (``dd`` has ``diffusion/`` and ``inverse_dynamics/``) with a
+checkpoint every few minutes; a killed run resumes where its last checkpoint left it, computing
+exactly what an uninterrupted run would. ``--ship`` exports the finished runs as small
+evaluation checkpoints under ``checkpoints/baselines/<name>/`` with a NOTE.md each (command,
+seed, steps, training time, and the results of ``experiments.baselines_eval`` JSONs given with
+``--results``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+import time
+from typing import Sequence
+
+from experiments import compile_common as cc
+
+DEFAULT_RUN_DIR = os.path.join(cc.REPO_ROOT, "runs", "baselines")
+SHIP_DIR = os.path.join(cc.CHECKPOINT_ROOT, "baselines")
+NAMES = ("bc", "cql", "dd")
+
+DESCRIPTIONS = {
+    "bc": "Behaviour cloning (the paper's BC, appendix): two 3x3 conv layers of 16 channels, "
+          "two dense layers of 40 units with the one-hot goal vector concatenated before the "
+          "second, a 4-way move head; cross-entropy on the expert's moves along expert "
+          "shortest paths; greedy.",
+    "cql": "Conservative Q-learning (the paper's CQL, appendix): the BC network with 4 "
+           "Q-values, trained offline on a 300k replay buffer of expert epsilon-greedy "
+           "transitions (epsilon 1 -> 0.01 over 10k frames), reward minus the remaining "
+           "instructed distance, double DQN + CQL(H) (alpha 1), gamma 0.99, tau 0.001, "
+           "lr 1e-3; greedy.",
+    "dd": "Decision-Diffuser-style planner (the paper's DD): diffusion over trajectories of "
+          "the flattened 256-cell grid with a 1-D temporal UNet conditioned on the goal "
+          "vector, frame 0 (the current observation) in-painted, an inverse dynamics MLP "
+          "turning (frame 0, frame 1) into the move; re-plans every move.",
+}
+
+
+def _json_file(path: str) -> dict:
+    """argparse type: the results JSON (contract 2) at path."""
+    try:
+        with open(path) as f:
+            result = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise argparse.ArgumentTypeError(f"{path!r} cannot be read as JSON: {e}") from e
+    if not isinstance(result, dict) or "rows" not in result:
+        raise argparse.ArgumentTypeError(f"{path!r} holds no results rows")
+    return result
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from diffplan.baselines import bc, cql, dd
+
+    b, c, d = bc.BCTrainConfig(), cql.CQLTrainConfig(), dd.DDTrainConfig()
+    p = argparse.ArgumentParser(
+        prog="python -m experiments.train_baselines",
+        description="Train the CompILE baselines BC, CQL and DD-style (one model each for the "
+                    "three settings), resuming from the last checkpoint; optionally ship them "
+                    "to checkpoints/baselines with a NOTE.md each.")
+    p.add_argument("--baselines", default=",".join(NAMES),
+                   help="comma-separated baselines to train / ship among bc,cql,dd "
+                        "(default all)")
+    p.add_argument("--run-dir", metavar="DIR", default=DEFAULT_RUN_DIR,
+                   help="training output root; each baseline trains into DIR/<name> "
+                        "(default runs/baselines)")
+    p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    p.add_argument("--bc-steps", type=int, default=b.steps,
+                   help=f"BC optimisation steps (default {b.steps}, batch {b.batch_size})")
+    p.add_argument("--cql-steps", type=int, default=c.steps,
+                   help=f"CQL optimisation steps (default {c.steps}, batch {c.batch_size})")
+    p.add_argument("--cql-buffer", type=int, default=c.buffer_size,
+                   help=f"CQL replay buffer size in transitions (default {c.buffer_size})")
+    p.add_argument("--dd-steps", type=int, default=d.steps,
+                   help=f"DD-style diffusion steps (default {d.steps}, batch {d.batch_size})")
+    p.add_argument("--id-steps", type=int, default=d.id_steps,
+                   help=f"DD-style inverse dynamics steps (default {d.id_steps}, batch "
+                        f"{d.id_batch_size})")
+    p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+                   help="write a checkpoint every N steps in every run (default: BC / CQL "
+                        f"{b.checkpoint_every}, DD {d.checkpoint_every}: a few minutes each "
+                        "on this CPU)")
+    p.add_argument("--no-train", action="store_true",
+                   help="do not train (e.g. --ship finished runs only)")
+    p.add_argument("--ship", action="store_true",
+                   help="export the finished runs to --ship-dir/<name> with a NOTE.md each")
+    p.add_argument("--ship-dir", metavar="DIR", default=SHIP_DIR,
+                   help="where --ship writes (default checkpoints/baselines)")
+    p.add_argument("--results", action="append", default=[], metavar="JSON", type=_json_file,
+                   help="experiments.baselines_eval JSON whose rows --ship records in the "
+                        "NOTE.md files; repeatable")
+    p.add_argument("--command", default=None,
+                   help="the training command recorded in NOTE.md (default: this command "
+                        "without --ship / --results)")
+    p.add_argument("--remark", action="append", default=[],
+                   help="a sentence added to every NOTE.md (e.g. what shared the CPU); "
+                        "repeatable")
+    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    return p
+
+
+def configs(args):
+    """(bc, cql, dd) training configs from the arguments."""
+    from diffplan.baselines import bc, cql, dd
+
+    every = {} if args.checkpoint_every is None else {"checkpoint_every":
+                                                      args.checkpoint_every}
+    return (bc.BCTrainConfig(seed=args.seed, steps=args.bc_steps, **every),
+            cql.CQLTrainConfig(seed=args.seed, steps=args.cql_steps,
+                               buffer_size=args.cql_buffer, **every),
+            dd.DDTrainConfig(seed=args.seed, steps=args.dd_steps, id_steps=args.id_steps,
+                             **every))
+
+
+def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True) -> dict:
+    """Trains the named baselines into run_dir/<name>; returns {name: seconds of this call}."""
+    from diffplan.baselines import bc, cql, dd
+
+    seconds = {}
+    for name in names:
+        start = time.time()
+        out = os.path.join(run_dir, name)
+        if name == "bc":
+            bc.train_bc(out, bc_config, progress=progress)
+        elif name == "cql":
+            cql.train_cql(out, cql_config, progress=progress)
+        else:
+            dd.train_dd(os.path.join(out, "diffusion"), dd_config, progress=progress)
+            dd.train_inverse_dynamics(os.path.join(out, "inverse_dynamics"), dd_config,
+                                      progress=progress)
+        seconds[name] = time.time() - start
+        print(f"{name}: {seconds[name] / 60:.1f} min in this call", file=sys.stderr)
+    return seconds
+
+
+def _parts(name):
+    from diffplan.baselines.policies import DD_PARTS
+    return DD_PARTS if name == "dd" else ("",)
+
+
+def ship(names, run_dir, ship_dir, results, command, remarks=()) -> None:
+    """Exports run_dir/<name> to ship_dir/<name> and writes its NOTE.md."""
+    from diffplan.baselines.policies import METHOD_NAMES, export_params
+
+    for name in names:
+        summaries = []
+        for part in _parts(name):
+            src = os.path.join(run_dir, name, part)
+            dst = os.path.join(ship_dir, name, part)
+            os.makedirs(dst, exist_ok=True)
+            export_params(src, dst, ema=(name == "dd" and part == "diffusion"))
+            summaries.append((part, _summary(src)))
+        write_note(os.path.join(ship_dir, name), name, METHOD_NAMES[name], summaries, results,
+                   command, remarks)
+        print(f"shipped {os.path.join(ship_dir, name)}")
+
+
+def _summary(train_dir) -> dict:
+    from diffplan.checkpoint import read_metadata
+    meta = read_metadata(train_dir)
+    tc = meta.get("train_config", {})
+    return {"step": meta.get("step"), "seed": tc.get("seed"), "batch_size": tc.get("batch_size"),
+            "lr": tc.get("lr"), "wall_time": meta.get("wall_time", float("nan")),
+            "model_config": meta.get("model_config")}
+
+
+def write_note(out_dir, name, method, summaries, results, command, remarks=()):
+    lines = [f"# {name}", "", DESCRIPTIONS[name], "", "## How it was made", "",
+             f"- command: `{command}`"]
+    total = 0.0
+    for part, s in summaries:
+        label = f"{part}: " if part else ""
+        lines.append(f"- {label}training seed {s['seed']}; {s['step']} steps of batch "
+                     f"{s['batch_size']}, lr {s['lr']}; model {json.dumps(s['model_config'])}; "
+                     f"{s['wall_time'] / 60:.1f} min of optimisation on a 2-core CPU")
+        total += s["wall_time"]
+    lines += [f"- training time in all: {total / 60:.1f} min (optimisation, as logged; data "
+              "collection and compilation come on top)",
+              "- one model for the three settings (trained on the planner's mixture: 36 "
+              "P-MO2G, 18 MO1G, 10 1O1G examples per 64)",
+              "- exported with `python -m experiments.train_baselines --ship`",
+              *[f"- {r}" for r in remarks], "",
+              "## What it achieved (in percent, measured on executed trajectories)", ""]
+    for result in results:
+        rows = [r for r in result["rows"] if r["method"] == method]
+        if not rows:
+            continue
+        seeds = ",".join(map(str, result.get("seeds", [result["seed"]])))
+        lines += [f"`python -m experiments.baselines_eval --episodes {result['episodes']} "
+                  f"--seeds {seeds}` ({result.get('machine', '')}; DD-style: "
+                  f"{result.get('dd_num_steps')} DDIM steps per move, guidance "
+                  f"{result.get('dd_guidance')}):", "", "```"]
+        lines += ["setting  " + cc.format_table(rows).splitlines()[0]]
+        for r in rows:
+            lines.append(f"{r['setting']:<8} " + cc.format_table([r]).splitlines()[2])
+        lines += ["```", ""]
+    with open(os.path.join(out_dir, "NOTE.md"), "w") as f:
+        f.write("\n".join(lines))
+
+
+def _default_command(argv) -> str:
+    drop_flags = {"--ship", "--no-train"}
+    drop_values = {"--results", "--command", "--remark", "--ship-dir"}
+    kept, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        if a in drop_flags:
+            continue
+        if a in drop_values:
+            skip = True
+            continue
+        if any(a.startswith(f + "=") for f in drop_values):
+            continue
+        kept.append(a)
+    return " ".join(["python -m experiments.train_baselines", *map(shlex.quote, kept)])
+
+
+def main(argv: Sequence[str] | None = None):
+    from diffplan.jax_cache import enable_compilation_cache
+    from experiments import cli
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    names = tuple(n.strip() for n in args.baselines.split(",") if n.strip())
+    if not names or any(n not in NAMES for n in names):
+        parser.error(f"--baselines must be among {','.join(NAMES)}, got {args.baselines!r}")
+    for flag in ("bc_steps", "cql_steps", "dd_steps", "id_steps", "cql_buffer"):
+        cli.check_at_least(parser, "--" + flag.replace("_", "-"), getattr(args, flag), 2)
+    cli.check_at_least(parser, "--checkpoint-every", args.checkpoint_every, 1)
+    cli.check_output_dir(parser, "--run-dir", args.run_dir)
+    if args.ship:
+        cli.check_output_dir(parser, "--ship-dir", args.ship_dir)
+    elif args.results or args.remark or args.command:
+        parser.error("--results, --remark and --command only make sense with --ship")
+    bc_config, cql_config, dd_config = configs(args)
+    enable_compilation_cache()
+    if not args.no_train:
+        from diffplan.train import ConfigMismatchError
+        try:
+            seconds = train_all(names, args.run_dir, bc_config, cql_config, dd_config,
+                                not args.no_progress)
+        except ConfigMismatchError as e:
+            cc.fail(str(e))
+        print(f"trained {','.join(names)} in {sum(seconds.values()) / 60:.1f} min",
+              file=sys.stderr)
+    if args.ship:
+        ship(names, args.run_dir, args.ship_dir, args.results,
+             args.command or _default_command(argv), args.remark)
+
+
+if __name__ == "__main__":
+    main()
