@@ -1,4 +1,7 @@
-"""Kuka block world, rearrangement (the paper's Table 2): `python -m experiments.kuka_rearrangement --help`."""
+"""Kuka block world, rearrangement (the paper's Table 2).
+
+`python -m experiments.kuka_rearrangement --help` lists the flags; see experiments/kuka_common.py.
+"""
 from experiments.kuka_common import main
 
 if __name__ == "__main__":

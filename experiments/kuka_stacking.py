@@ -1,4 +1,7 @@
-"""Kuka block world, stacking (the paper's Table 2): `python -m experiments.kuka_stacking --help`."""
+"""Kuka block world, stacking (the paper's Table 2).
+
+`python -m experiments.kuka_stacking --help` lists the flags; see experiments/kuka_common.py.
+"""
 from experiments.kuka_common import main
 
 if __name__ == "__main__":

@@ -11,8 +11,8 @@ on the floor at the place cell's centre where no block covers it. The primitive
 The episode ends when its relations hold (strictly: success.on_matrix; stacking also needs the
 four blocks in one tower) or after ``episode.max_steps`` placements; stepping a done state
 changes nothing. Nothing here depends on the task but through the Episode's arrays, so one
-compiled step serves every task. Everything is jit- and vmap-able; one ``mjx.Model`` (physics.mjx_model) serves every
-episode.
+compiled step serves every task. Everything is jit- and vmap-able; one ``mjx.Model``
+(physics.mjx_model) serves every episode.
 """
 from __future__ import annotations
 

@@ -14,8 +14,9 @@ flange yaw set to the block's own (:func:`ik.choose_branch`: the weld's relative
 in the model, so the block is carried exactly as it lay; a block knocked far from its initial,
 world-aligned yaw can need joint 7 beyond its limit on some paths, where the IK clips it and
 the weld twists the block as it grasps), and the servo targets interpolated in joint space
-between key poses with a cosine ease over each phase. Phases that end in contact (the grasp and the place)
-hold their last pose for a few steps so that the servos settle to well under a millimetre.
+between key poses with a cosine ease over each phase. Phases that end in contact (the grasp and
+the place) hold their last pose for a few steps so that the servos settle to well under a
+millimetre.
 """
 from __future__ import annotations
 
