@@ -40,9 +40,10 @@ from flax import struct
 from diffplan.denoiser import LoadedDenoiser
 from diffplan.sampler import denoiser_calls, sample
 
-__all__ = ["MODES", "MIN_SUB_BATCH", "PlannerConfig", "PlannerState", "Planner", "subset_update"]
+__all__ = ["MODES", "REPLAN_TRIGGERS", "MIN_SUB_BATCH", "PlannerConfig", "PlannerState", "Planner", "subset_update"]
 
 MODES = ("one_shot", "k_shot", "on_the_fly", "warm_start")
+REPLAN_TRIGGERS = ("always", "on_change")
 MIN_SUB_BATCH = 16
 """``plan_batch`` plans in sub-batches of at least this many episodes (padding rows are
 computed and dropped). Measured on the XLA CPU backend of jax 0.6.2: the shipped UNet's output
@@ -69,6 +70,10 @@ class PlannerConfig:
     fresh_noise: each plan draws new noise (key fold_in(episode key, move)); False reuses the
     episode's noise (key fold_in(episode key, 0)) at every re-plan, so that with eta = 0 plans
     change only where the observation changed.
+    replan: in on_the_fly and warm_start modes, "always" re-plans before every move (the
+    paper); "on_change" only when the world says the plan is stale (diffplan.rollouts.move
+    asks ``task.new_information(condition at the last plan, condition)`` and
+    ``task.at_goal_estimate``: new cells seen, or the plan's (sub-)goal reached).
     """
 
     mode: str = "on_the_fly"
@@ -80,6 +85,7 @@ class PlannerConfig:
     clip_x0: bool = True
     record_plans: bool = False
     fresh_noise: bool = True
+    replan: str = "always"
 
     def __post_init__(self):
         def is_int(v):
@@ -87,6 +93,9 @@ class PlannerConfig:
 
         if self.mode not in MODES:
             raise ValueError(f"unknown planner mode {self.mode!r}; expected one of {MODES}")
+        if self.replan not in REPLAN_TRIGGERS:
+            raise ValueError(f"unknown replan trigger {self.replan!r}; expected one of "
+                             f"{REPLAN_TRIGGERS}")
         for name in ("num_steps", "k", "warm_start_step"):
             if not is_int(getattr(self, name)):
                 raise ValueError(f"{name} must be an int, got {getattr(self, name)!r}")
@@ -143,6 +152,7 @@ class PlannerState(struct.PyTreeNode):
 
     key: the episode's PRNG key. tokens: int32 (L,) the instruction.
     plan: float32 (H, W, G) the current plan (zeros before the first).
+    condition: float32 (H, W, C) the condition it was made from (zeros before the first).
     move: int32 () calls of ``plan`` so far (moves). calls: int32 () denoiser calls spent.
     num_plans: int32 () plans made.
     """
@@ -150,6 +160,7 @@ class PlannerState(struct.PyTreeNode):
     key: jax.Array
     tokens: jax.Array
     plan: jax.Array
+    condition: jax.Array
     move: jax.Array
     calls: jax.Array
     num_plans: jax.Array
@@ -215,9 +226,12 @@ class Planner(struct.PyTreeNode):
             raise ValueError(f"tokens must be int32 (L,) (one episode; vmap for a batch), got "
                              f"shape {tokens.shape}")
         zero = jnp.zeros((), jnp.int32)
+        h, w, _ = self.plan_shape
         return PlannerState(key=key, tokens=tokens.astype(jnp.int32),
-                            plan=jnp.zeros(self.plan_shape, jnp.float32), move=zero,
-                            calls=zero, num_plans=zero)
+                            plan=jnp.zeros(self.plan_shape, jnp.float32),
+                            condition=jnp.zeros((h, w, self.denoiser.num_cond_channels),
+                                                jnp.float32),
+                            move=zero, calls=zero, num_plans=zero)
 
     def plan(self, state: PlannerState, condition: jax.Array,
              replan: Optional[jax.Array] = None) -> tuple[jax.Array, PlannerState]:
@@ -248,7 +262,7 @@ class Planner(struct.PyTreeNode):
             new = jax.lax.switch(branch, [hold, fresh, warm_fn])
         else:
             new = jax.lax.cond(need, fresh, hold)
-        return new, self._advance(state, new, need, warm, jnp.bool_(True))
+        return new, self._advance(state, new, condition, need, warm, jnp.bool_(True))
 
     # ------------------------------------------------------------------ a batch
 
@@ -294,7 +308,7 @@ class Planner(struct.PyTreeNode):
             plans = subset_update(need & warm, warm_plans, plans, chunk)
         else:
             plans = subset_update(need, fresh, plans, chunk)
-        return plans, jax.vmap(self._advance)(states, plans, need, warm, active)
+        return plans, jax.vmap(self._advance)(states, plans, conditions, need, warm, active)
 
     # ------------------------------------------------------------------ internals
 
@@ -324,10 +338,13 @@ class Planner(struct.PyTreeNode):
     def _plan_key(self, state: PlannerState):
         return jax.random.fold_in(state.key, state.move if self.config.fresh_noise else 0)
 
-    def _advance(self, state: PlannerState, plan, need, warm, active) -> PlannerState:
+    def _advance(self, state: PlannerState, plan, condition, need, warm, active
+                 ) -> PlannerState:
         cfg = self.config
         cost = jnp.where(warm, cfg.warm_plan_calls, cfg.full_plan_calls)
-        return state.replace(plan=plan, move=state.move + active.astype(jnp.int32),
+        condition = jnp.where(need, condition.astype(jnp.float32), state.condition)
+        return state.replace(plan=plan, condition=condition,
+                             move=state.move + active.astype(jnp.int32),
                              calls=state.calls + jnp.where(need, cost, 0).astype(jnp.int32),
                              num_plans=state.num_plans + need.astype(jnp.int32))
 

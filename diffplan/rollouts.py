@@ -58,15 +58,20 @@ def _where_rows(mask, new, old):
 def move(task, planner: Planner, states, planner_states: PlannerState, active,
          chunk: Optional[int] = None, fresh_chunk: Optional[int] = None):
     """One move of Algorithm 1 for a batch of B episodes: plan (where the planner's mode asks
-    for it; in k_shot mode when ``task.at_goal_estimate`` of the current plan), act with
+    for it; in k_shot mode when ``task.at_goal_estimate`` of the current plan; with the
+    "on_change" trigger when ``task.new_information`` or ``task.at_goal_estimate``), act with
     ``task.psi``, step the world. Inactive episodes (active bool (B,) False) are left as they
     are. chunk / fresh_chunk: see ``Planner.plan_batch``.
 
     Returns (states, planner_states, plans float32 (B, H, W, G) followed at this move)."""
-    replan = None
-    if planner.config.mode == "k_shot":
-        replan = jax.vmap(task.at_goal_estimate)(states, planner_states.plan)
+    config = planner.config
     conditions = jax.vmap(task.condition)(states)
+    replan = None
+    if config.mode == "k_shot":
+        replan = jax.vmap(task.at_goal_estimate)(states, planner_states.plan)
+    elif config.replan == "on_change" and config.mode != "one_shot":
+        replan = (jax.vmap(task.new_information)(planner_states.condition, conditions)
+                  | jax.vmap(task.at_goal_estimate)(states, planner_states.plan))
     plans, planner_states = planner.plan_batch(planner_states, conditions, active, replan,
                                                chunk=chunk, fresh_chunk=fresh_chunk)
     actions = jax.vmap(task.psi)(states, plans)

@@ -38,6 +38,7 @@ __all__ = [
     "constrain_batch",
     "constrain_replicated",
     "data_parallel_jit",
+    "per_device",
 ]
 
 DATA_AXIS = "data"
@@ -166,3 +167,26 @@ def data_parallel_jit(fn: Callable, mesh: Mesh, *, batched_argnums: Sequence[int
 
     wrapper.jitted_for = get_jitted
     return wrapper
+
+
+def per_device(fn: Callable, mesh: Mesh, *, num_replicated: int = 1) -> Callable:
+    """``jit(shard_map(fn))``: every device runs ``fn`` on its own slice of the batch, with no
+    communication; for computations whose per-row results do not depend on the other rows
+    (e.g. an evaluation's episodes, each with its own key).
+
+    ``fn(*replicated, *batched)``: the first ``num_replicated`` arguments (e.g. the planner and
+    its parameters) are copied to every device; the leaves of the others and of the output
+    have a leading batch axis, split over ``"data"`` (its size divisible by the number of
+    devices; each device sees batch / devices rows). With one device this is ``jit(fn)``.
+    """
+    from jax.experimental.shard_map import shard_map
+
+    def wrapped(*args):
+        in_specs = tuple(P() if i < num_replicated else P(DATA_AXIS)
+                         for i in range(len(args)))
+        for a in args[num_replicated:]:
+            check_divisible(batch_size_of(a), mesh)
+        return shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=P(DATA_AXIS),
+                         check_rep=False)(*args)
+
+    return jax.jit(wrapped)

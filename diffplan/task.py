@@ -49,3 +49,7 @@ class Task(Protocol):
 
     def at_goal_estimate(self, state: Any, plan: jax.Array) -> jax.Array:
         """bool (): the agent has reached the plan's goal estimate (k-shot re-plan trigger)."""
+
+    def new_information(self, old_condition: jax.Array, condition: jax.Array) -> jax.Array:
+        """bool (): ``condition`` (H, W, C) shows something ``old_condition`` (the one the
+        current plan was made from) did not (the "on_change" re-planning trigger)."""

@@ -75,6 +75,8 @@ class ExperimentSpec:
     warm_num_steps: int | None = 3
     eval_batch: int = 250
     fresh_noise: bool = True
+    eta: float = 0.0
+    replan: str = "always"
     modes: tuple[str, ...] = ("one_shot", "k_shot", "on_the_fly", "warm_start")
     main_mode: str = "on_the_fly"
 
@@ -126,7 +128,8 @@ class ExperimentSpec:
         return PlannerConfig(mode=mode, num_steps=self.num_steps,
                              warm_start_step=self.warm_start_step,
                              warm_num_steps=self.warm_num_steps,
-                             fresh_noise=self.fresh_noise, **overrides)
+                             fresh_noise=self.fresh_noise, eta=self.eta, replan=self.replan,
+                             **overrides)
 
     @property
     def training_name(self) -> str:
@@ -453,6 +456,12 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                    help="initial noise of re-plans: 'fresh' draws new noise at every move, "
                         "'episode' reuses the episode's noise so plans change only where the "
                         "observation did (default %(default)s)")
+    p.add_argument("--eta", type=float, default=spec.eta,
+                   help="sampler stochasticity: 0 = DDIM (default), 1 = DDPM-like")
+    p.add_argument("--replan", choices=("always", "on_change"), default=spec.replan,
+                   help="re-planning modes re-plan before every move ('always', the paper; "
+                        "default) or only when new cells were seen or the plan's sub-goal was "
+                        "reached ('on_change')")
     p.add_argument("--batch-size", type=int, default=spec.eval_batch,
                    help=f"episodes per jitted evaluation call (default {spec.eval_batch})")
     p.add_argument("--figures", metavar="DIR",
@@ -508,6 +517,8 @@ def check_args(parser, args, spec):
     args.num_figures = 4 if args.num_figures is None else args.num_figures
     if args.seed < 0:
         parser.error(f"--seed must be >= 0, got {args.seed}")
+    if not 0 <= args.eta <= 10 or args.eta != args.eta:
+        parser.error(f"--eta must be in [0, 10], got {args.eta}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.batch_size < 1:
@@ -570,7 +581,8 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     spec = dataclasses.replace(spec, num_steps=args.num_steps,
                                warm_start_step=args.warm_start_step,
                                warm_num_steps=args.warm_num_steps,
-                               fresh_noise=args.noise == "fresh")
+                               fresh_noise=args.noise == "fresh", eta=args.eta,
+                               replan=args.replan)
     enable_compilation_cache()
     progress = not args.no_progress
 
@@ -624,6 +636,8 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         "warm_start_step": spec.warm_start_step,
         "warm_num_steps": spec.warm_num_steps or spec.num_steps,
         "noise": "fresh" if spec.fresh_noise else "episode",
+        "eta": spec.eta,
+        "replan": spec.replan,
         "trajectories_method": METHOD_NAMES[main_mode],
         "train_seconds": train_seconds,
         "machine": f"{os.cpu_count()} CPU cores, jax {jax.__version__} on "

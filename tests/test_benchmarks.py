@@ -50,3 +50,17 @@ def test_env_runner_checksum_is_the_xor_of_every_observation():
         checksum = sum(int(x.astype(np.int64).sum()) for x in acc)
         got = int(bench_gridworld._env_runner(config, measure)(state, actions)[1])
         assert got == checksum, measure
+
+
+def test_bench_planner_tiny_run(tmp_path):
+    """bench_planner end to end on 2 episodes (numbers not checked; the eager reference must
+    play the same game: its episodes end)."""
+    from experiments import bench_planner
+
+    out = tmp_path / "planner.json"
+    assert bench_planner.main(["--batch-sizes", "2", "--num-steps", "2", "--eager-full", "2",
+                               "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert [(r["method"], r["batch"]) for r in data["rows"]] == [("jitted", 2), ("eager", 2)]
+    assert all(r["episodes_per_second"] > 0 for r in data["rows"])
+    assert data["rows"][0]["speedup"] > 0

@@ -177,6 +177,11 @@ class GridTask:
     def position(self, state: env.State):
         return state.agent
 
+    def new_information(self, old_condition, condition):
+        """bool (): a cell's token (channel 0) differs: newly seen cells (objects and
+        obstacles never move, so nothing else changes what is known of the world)."""
+        return jnp.any(old_condition[..., 0] != condition[..., 0])
+
     def at_goal_estimate(self, state: env.State, plan):
         """bool (): the agent stands on the cell the plan heads for (with a sub-goal channel:
         its argmax off known obstacles, visited or not, so that arriving there counts)."""
