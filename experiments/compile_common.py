@@ -240,7 +240,7 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
     from tqdm import tqdm
 
     from diffplan.planner import Planner
-    from experiments.progress import RELAY
+    from experiments.progress import PARTS, RELAY
 
     n = int(np.shape(episodes.tokens)[0])
     planner = Planner(denoiser, spec.planner_config(mode, record_plans=record_plans))
@@ -269,7 +269,7 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
                 keys = jnp.concatenate([keys, keys[:pad]])
             token = RELAY.attach(bar, offset=lo)
             try:
-                out = jax.device_get(run(planner, keys, chunk, jnp.int32(token)))
+                out = jax.device_get(run(planner, keys, chunk, jnp.int32(token * PARTS)))
             finally:
                 RELAY.detach(token)
             outs.append(jax.tree.map(lambda x: x[:len(idx)], out))

@@ -12,8 +12,14 @@ import itertools
 import threading
 
 
+PARTS = 64
+"""Reports of part p (e.g. a device's slice of the episodes) of token t arrive as
+t * PARTS + p; the bar shows the sum over parts."""
+
+
 class Relay:
-    """Routes (token, count) reports to open tqdm bars: bar.n = offset + count."""
+    """Routes (token, count) reports to open tqdm bars: bar.n = offset + the sum of the latest
+    count of each part."""
 
     def __init__(self):
         self._bars = {}
@@ -21,23 +27,25 @@ class Relay:
         self._lock = threading.Lock()
 
     def attach(self, bar, offset: int = 0) -> int:
-        """Registers a bar; reports of the returned token set it to offset + count."""
+        """Registers a bar; returns its token (send reports as token * PARTS + part)."""
         with self._lock:
-            token = next(self._tokens) % (2 ** 31 - 1)
-            self._bars[token] = (bar, offset)
+            token = next(self._tokens) % (2 ** 31 // PARTS - 1)
+            self._bars[token] = (bar, offset, {})
         return token
 
     def detach(self, token: int) -> None:
         with self._lock:
             self._bars.pop(int(token), None)
 
-    def __call__(self, token, count) -> None:
+    def __call__(self, token_part, count) -> None:
+        token, part = divmod(int(token_part), PARTS)
         with self._lock:
-            entry = self._bars.get(int(token))
-        if entry is None:
-            return
-        bar, offset = entry
-        value = offset + int(count)
+            entry = self._bars.get(token)
+            if entry is None:
+                return
+            bar, offset, counts = entry
+            counts[part] = max(counts.get(part, 0), int(count))
+            value = offset + sum(counts.values())
         if value > bar.n:
             bar.update(value - bar.n)
 

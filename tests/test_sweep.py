@@ -1,0 +1,103 @@
+"""experiments.sweep end to end on a tiny model: rows, JSON, CSV, figures, compilation reuse,
+bad configurations refused in one line, and per-episode results on 2 devices equal to 1."""
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from experiments import compile_common as cc
+from experiments import sweep
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweep") / "tiny"
+    cc.train_setting(cc.SPECS["p_mo2g"], str(out), steps=2, progress=False, model_size="tiny")
+    return str(out)
+
+
+def _argv(checkpoint, tmp, extra=()):
+    return ["--checkpoint", checkpoint, "--modes", "warm_start,one_shot", "--num-steps", "2",
+            "--warm-num-steps", "2", "--episodes", "6", "--batch-size", "4", "--seed", "5,6",
+            "--json", str(tmp / "s.json"), "--csv", str(tmp / "s.csv"), "--figures",
+            str(tmp / "figs"), "--trajectories", str(tmp / "traj"), "--no-progress", *extra]
+
+
+def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
+    result = sweep.main(_argv(tiny_checkpoint, tmp_path))
+    rows = result["rows"]
+    assert [(r["modes"], r["seed"]) for r in rows] == [("warm_start", 5), ("warm_start", 6),
+                                                      ("one_shot", 5), ("one_shot", 6)]
+    # The second seed of a configuration reuses the compiled evaluation.
+    assert rows[0]["compile_seconds"] > 0 and rows[1]["compile_seconds"] == 0
+    assert rows[2]["compile_seconds"] > 0 and rows[3]["compile_seconds"] == 0
+    for r in rows:
+        for key in ("SR", "SR_ordered", "GD", "path_f1", "denoiser_calls_per_episode",
+                    "seconds", "compile_seconds"):
+            assert key in r
+    assert json.loads((tmp_path / "s.json").read_text())["experiment"] == "sweep"
+    with open(tmp_path / "s.csv") as f:
+        assert len(list(csv.DictReader(f))) == 4
+    assert sorted(os.listdir(tmp_path / "figs")) == ["pareto_calls.png", "pareto_seconds.png"]
+    # Each row is what its trajectories say.
+    from diffplan import metrics
+    traj = np.load(tmp_path / "traj" / "config_001.npz")
+    m = metrics.trajectory_metrics(traj["positions"], traj["steps"], traj["target"],
+                                   traj["expert_path"], traj["reference"])
+    assert m["SR"] == pytest.approx(rows[1]["SR"])
+
+
+@pytest.mark.parametrize("config, message", [
+    ({"modes": "two_shot"}, "modes must be one planning mode"),
+    ({"num_steps": 0}, "num_steps must be >= 1"),
+    ({"setting": "mo2g"}, "setting must be one of"),
+    ({"episodes": "ten"}, "episodes must be int"),
+    ({"bogus": 1}, "unknown keys"),
+    ({"warm_num_steps": 3, "warm_start_step": 3}, "warm_start_step"),
+    ({"num_steps": 500}, "exceeds the denoiser's schedule"),
+])
+def test_bad_configurations_are_refused_in_one_line(tmp_path, capsys, config, message):
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps([config]))
+    with pytest.raises(SystemExit) as err:
+        sweep.main(["--config", str(path), "--no-progress"])
+    assert err.value.code == 2
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_shipped_sweep_file_is_valid():
+    path = os.path.join(REPO, "experiments", "sweeps", "p_mo2g_pareto.json")
+    with open(path) as f:
+        configs = json.load(f)
+    assert len(configs) == 12
+    for i, c in enumerate(configs):
+        sweep.normalise(c, i)
+
+
+def test_two_devices_give_the_single_device_episodes(tiny_checkpoint, tmp_path):
+    """The same sweep with 2 host devices (XLA_FLAGS) writes the same trajectories."""
+    outs = {}
+    for devices in (1, 2):
+        d = tmp_path / f"d{devices}"
+        env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=REPO,
+                   XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
+        cache = jax.config.jax_compilation_cache_dir
+        if cache:
+            env["DIFFPLAN_JAX_CACHE"] = cache
+        res = subprocess.run([sys.executable, "-m", "experiments.sweep",
+                              *_argv(tiny_checkpoint, d)], capture_output=True, text=True,
+                             env=env, cwd=REPO, timeout=600)
+        assert res.returncode == 0, res.stderr[-3000:]
+        outs[devices] = d
+        assert json.loads((d / "s.json").read_text())["devices"] == devices
+    for name in sorted(os.listdir(outs[1] / "traj")):
+        a, b = np.load(outs[1] / "traj" / name), np.load(outs[2] / "traj" / name)
+        for key in ("positions", "steps", "success"):
+            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
