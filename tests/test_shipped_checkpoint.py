@@ -1,6 +1,6 @@
-"""The shipped grid-world checkpoint still loads and still performs (on-the-fly SR >= 90% on 64
-fresh P-MO2G episodes, measured on the executed trajectories)."""
-import dataclasses
+"""The shipped grid-world checkpoint still loads and still performs: on-the-fly SR and
+SR_ordered >= 95% on 64 fresh P-MO2G episodes (seed 4242, used for no choice; measured 100 / 100
+when shipped), on the executed trajectories."""
 import os
 
 import jax
@@ -30,10 +30,9 @@ def test_checkpoint_has_a_note_with_its_provenance():
 
 def test_checkpoint_config_matches_the_default_model(shipped):
     spec, denoiser, metadata = shipped
-    expected = dataclasses.replace(spec.model_config("default"),
-                                   num_gen_channels=denoiser.num_gen_channels)
-    assert denoiser.model_config == expected
-    assert metadata["extra"]["mixture"] == spec.recipe().metadata()["mixture"]
+    assert denoiser.model_config == spec.model_config("default")
+    assert metadata["extra"] == {**spec.recipe().metadata(), "model_size": "default"}
+    assert metadata["train_config"] == spec.train_config().to_dict()
 
 
 def test_on_the_fly_sr_on_64_p_mo2g_episodes(shipped):
@@ -45,7 +44,7 @@ def test_on_the_fly_sr_on_64_p_mo2g_episodes(shipped):
                                   progress=False)
     m = trajectory_metrics(rollout.positions, rollout.steps, episodes.target,
                            episodes.expert_path, episodes.reference)
-    assert m["SR"] >= 90.0, m
+    assert m["SR"] >= 95.0 and m["SR_ordered"] >= 95.0, m
     # Success is what the agent executed: standing on the target at the end.
     final = rollout.positions[np.arange(64), rollout.steps]
     np.testing.assert_array_equal(np.all(final == np.asarray(episodes.target), -1),
