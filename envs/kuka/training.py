@@ -1,0 +1,162 @@
+"""The Kuka world's training data: supervised examples for the in-painting denoiser.
+
+An example is a state the arm can be in between two placements and the expert's next
+pick-and-place from there, drawn as the generated channels of the planning tensor
+(:mod:`envs.kuka.task`): the carry path, the support's visible top (goal estimate) and the moved
+block's visible top (pick). States are cheap: ``expert.planned_poses`` builds the first k
+relations exactly, without physics; with probability ``Recipe.perturb_prob`` the blocks that
+were moved are then shifted and turned a little (more than the primitive's measured placement
+error, <= 3.4 mm and 0.004 rad over 24 expert placements under physics), so that re-plans see
+the small offsets physics produces and the cells they shift on the grid.
+
+The expert's build order (:func:`planner_goal`) is made a function of the instruction: the
+instructed relations in instruction order, except that a relation whose bottom block is another
+relation's top waits for it; single-constraint stacking builds the instructed pair first and
+then stacks the two other blocks on it in colour order (red, green, blue, yellow). The
+scripted expert of the CLIs (``--policy expert``) draws the free part of a single-constraint
+tower at random (``Episode.goal``); a denoiser trained on a random order would have to guess it.
+
+Training episodes come from ``fold_in(step key, TRAIN_STREAM)`` keys, never of the form
+``fold_in(PRNGKey(seed), i)`` that evaluation episodes use.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from envs.kuka import expert, grid, scene, tasks
+from envs.kuka.task import NUM_GEN_CHANNELS, condition_from_view
+
+TRAIN_STREAM = 0x6B4B
+SPECS = tuple(dataclasses.replace(spec, language=language)
+              for language in ("canonical", "paraphrased") for spec in tasks.COLUMNS.values())
+"""The task specs one denoiser is trained on: the four Table 2 columns, canonical and
+paraphrased instructions (Table 5)."""
+PERTURB_XY = 0.006
+"""Standard deviation (m) of the shift of moved blocks in perturbed examples (clipped at 2.5x)."""
+PERTURB_YAW = 0.02
+"""Standard deviation (rad) of their turn about z (clipped at 2.5x)."""
+
+
+def planner_goal(episode: tasks.Episode):
+    """int32 (3, 2) the relations the training expert builds, in build order (rows of -1
+    padding last); see the module docstring."""
+    constraints = episode.constraints
+    valid = constraints[:, 0] >= 0
+    n = constraints.shape[0]
+    # Relation i waits for relation j when i's bottom is j's top: depth = relations under it.
+    under = (constraints[:, None, 1] == constraints[None, :, 0]) & valid[:, None] & valid[None]
+    depth = jnp.zeros(n, jnp.int32)
+    for _ in range(n):
+        depth = jnp.max(jnp.where(under, depth[None, :] + 1, 0), axis=1)
+    order = jnp.argsort(jnp.where(valid, depth * n + jnp.arange(n), n * n + jnp.arange(n)))
+    built = constraints[order]
+    # Single-constraint tower: the other two blocks on top of the instructed pair, in colour order.
+    top, bottom = constraints[0]
+    blocks = jnp.arange(scene.NUM_BLOCKS)
+    rest = jnp.sort(jnp.where((blocks == top) | (blocks == bottom), scene.NUM_BLOCKS, blocks))
+    tower = jnp.stack([constraints[0], jnp.stack([rest[0], top]), jnp.stack([rest[1], rest[0]])])
+    single_tower = episode.tower & (valid.sum() == 1)
+    return jnp.where(single_tower, tower, built).astype(jnp.int32)
+
+
+def _yaw_quat(yaw):
+    return jnp.stack([jnp.cos(yaw / 2), jnp.zeros_like(yaw), jnp.zeros_like(yaw),
+                      jnp.sin(yaw / 2)], axis=-1)
+
+
+def plan_example(pos, quat, episode: tasks.Episode):
+    """The planning tensor float32 (24, 24, C + G) of block poses (pos float (4, 3), quat
+    (4, 4); nothing held): the view's condition channels, then the expert's next pick-and-place
+    (``expert.decide`` with :func:`planner_goal`) as signed maps (+1 / -1): path, goal estimate
+    (the support's visible top), pick (the moved block's visible top)."""
+    held = jnp.zeros(scene.NUM_BLOCKS, bool)
+    step = expert.decide(pos, held, episode.replace(goal=planner_goal(episode)))
+    top, height = grid.top_down_view(pos, quat, held)
+    maps = jnp.stack([step.path, top == step.support, top == step.block], axis=-1)
+    return jnp.concatenate([condition_from_view(top, height),
+                            maps.astype(jnp.float32) * 2 - 1], axis=-1)
+
+
+def training_example(key, spec: tasks.TaskSpec, perturb_prob: float):
+    """One example of a task spec: (x0 float32 (24, 24, C + G), tokens int32 (L,)).
+
+    The state: the first k relations of :func:`planner_goal` built (k uniform among those
+    still to do), blocks moved so far perturbed with probability ``perturb_prob``."""
+    k_episode, k_built, k_perturb, k_xy, k_yaw = jax.random.split(key, 5)
+    episode = tasks.generate(k_episode, spec)
+    goal = planner_goal(episode)
+    count = (goal[:, 0] >= 0).sum()
+    built = jax.random.randint(k_built, (), 0, count)
+    pos = expert.planned_poses(episode.replace(goal=goal), built)
+    moved = jnp.any((jnp.arange(goal.shape[0]) < built)[:, None]
+                    & (goal[:, :1] == jnp.arange(scene.NUM_BLOCKS)[None]), axis=0)
+    moved = moved & jax.random.bernoulli(k_perturb, perturb_prob)
+    shift = PERTURB_XY * jnp.clip(jax.random.normal(k_xy, (scene.NUM_BLOCKS, 2)), -2.5, 2.5)
+    yaw = PERTURB_YAW * jnp.clip(jax.random.normal(k_yaw, (scene.NUM_BLOCKS,)), -2.5, 2.5)
+    pos = pos.at[:, :2].add(jnp.where(moved[:, None], shift, 0.0))
+    quat = _yaw_quat(jnp.where(moved, yaw, 0.0))
+    return plan_example(pos, quat, episode), episode.tokens
+
+
+# ------------------------------------------------------------------------------ batches
+
+def training_episode_keys(key, batch_size: int):
+    """The example keys of one training batch: (batch_size,) keys from the TRAIN_STREAM fold
+    of the step's key (never of the form fold_in(PRNGKey(seed), i) of evaluation episodes)."""
+    return jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """The Kuka world's training-data recipe (what the Kuka CLIs' --train uses).
+
+    specs: the task specs, each with the same share of every batch (the batch size must be a
+    multiple of their number). perturb_prob: the share of examples whose moved blocks are
+    perturbed. goal_loss_weight: the weight of the goal and pick channels in the loss relative
+    to the path channel's.
+    """
+
+    specs: tuple = SPECS
+    perturb_prob: float = 0.5
+    goal_loss_weight: float = 3.0
+
+    def __post_init__(self):
+        if not 0 <= self.perturb_prob <= 1:
+            raise ValueError(f"perturb_prob must be in [0, 1], got {self.perturb_prob}")
+        if not self.goal_loss_weight > 0:
+            raise ValueError(f"goal_loss_weight must be > 0, got {self.goal_loss_weight}")
+
+    def batch_fn(self):
+        """batch_fn(key, batch_size) -> diffplan.train.Batch."""
+        from diffplan.train import Batch
+
+        specs, prob, weight = self.specs, self.perturb_prob, self.goal_loss_weight
+
+        def batch_fn(key, batch_size):
+            if batch_size % len(specs):
+                raise ValueError(f"batch size {batch_size} is not a multiple of the "
+                                 f"{len(specs)} task specs")
+            keys = training_episode_keys(key, batch_size).reshape(len(specs), -1, 2)
+            parts = [jax.vmap(training_example, in_axes=(0, None, None))(k, spec, prob)
+                     for k, spec in zip(keys, specs)]
+            x0 = jnp.concatenate([x for x, _ in parts])
+            tokens = jnp.concatenate([t for _, t in parts])
+            mask = jnp.broadcast_to(jnp.array([1.0, weight, weight], jnp.float32),
+                                    x0.shape[:-1] + (NUM_GEN_CHANNELS,))
+            return Batch(x0=x0, tokens=tokens, loss_mask=mask)
+
+        return batch_fn
+
+    def init_batch(self):
+        """Shapes of one batch of len(specs) examples."""
+        return jax.eval_shape(lambda k: self.batch_fn()(k, len(self.specs)),
+                              jax.random.PRNGKey(0))
+
+    def metadata(self) -> dict:
+        """What a checkpoint records of the recipe (compared when resuming)."""
+        return {"specs": [[s.kind, s.multi, s.language] for s in self.specs],
+                "perturb_prob": self.perturb_prob, "goal_loss_weight": self.goal_loss_weight,
+                "num_gen_channels": NUM_GEN_CHANNELS}
