@@ -336,12 +336,22 @@ def save_checkpoint(directory: str, step: int, state: Any, metadata: Mapping[str
         return step_dir
 
 
-def _remove_partial(directory: str, step: int) -> None:
+def _remove_partial(directory: str, step: int, patience: float = 5.0) -> None:
     """Deletes what a failed save of ``step`` left behind (orbax's temporary directory, or a
-    committed step without its digest)."""
-    for name in os.listdir(directory):
-        if name == str(step) or name.startswith(f"{step}.orbax-checkpoint-tmp"):
+    committed step without its digest). Orbax's writer threads may still be finishing when
+    the error surfaces, so this retries until nothing of the step is left (at most
+    ``patience`` seconds)."""
+    import time
+
+    deadline = time.monotonic() + patience
+    while True:
+        left = [n for n in os.listdir(directory)
+                if n == str(step) or n.startswith(f"{step}.orbax-checkpoint-tmp")]
+        for name in left:
             shutil.rmtree(os.path.join(directory, name), ignore_errors=True)
+        if not left or time.monotonic() > deadline:
+            return
+        time.sleep(0.1)
 
 
 def _restore(manager, directory: str, step: int, args):

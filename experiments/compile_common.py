@@ -469,8 +469,21 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "paths and goal estimates at several re-plans")
     p.add_argument("--num-figures", type=int, default=None,
                    help="episodes drawn with --figures (default 4)")
+    p.add_argument("--profile", metavar="DIR",
+                   help="write a JAX profiler trace (TensorBoard / Perfetto) of one batch of "
+                        "the main planning mode to DIR, after the evaluation")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
+
+
+def write_profile(out_dir: str, spec, task, denoiser, episodes, seed: int, mode: str,
+                  batch_size: int) -> None:
+    """A profiler trace of one (already compiled) batch of ``mode``."""
+    n = min(batch_size, int(np.shape(episodes.tokens)[0]))
+    batch = jax.tree.map(lambda x: x[:n], episodes)
+    evaluate_mode(spec, task, denoiser, batch, seed, mode, n, progress=False)  # compile
+    with jax.profiler.trace(out_dir):
+        evaluate_mode(spec, task, denoiser, batch, seed, mode, n, progress=False)
 
 
 def parse_seeds(parser, args):
@@ -509,6 +522,7 @@ def check_args(parser, args, spec):
     cli.check_output_file(parser, "--trajectories", args.trajectories, suffix=".npz")
     cli.check_output_dir(parser, "--figures", args.figures)
     cli.check_output_dir(parser, "--train-dir", args.train_dir)
+    cli.check_output_dir(parser, "--profile", args.profile)
     args.train_steps = spec.train_steps if args.train_steps is None else args.train_steps
     args.train_seed = 0 if args.train_seed is None else args.train_seed
     args.checkpoint_every = 500 if args.checkpoint_every is None else args.checkpoint_every
@@ -658,6 +672,10 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     if args.trajectories:
         write_trajectories(args.trajectories, rollouts[main_mode], episodes, grid_config)
         print(f"wrote {args.trajectories} ({METHOD_NAMES[main_mode]} trajectories)")
+    if args.profile:
+        write_profile(args.profile, spec, task, denoiser, per_seed[seeds[0]], seeds[0],
+                      main_mode, args.batch_size)
+        print(f"wrote a profiler trace of one {METHOD_NAMES[main_mode]} batch to {args.profile}")
     if args.figures:
         from experiments.compile_figures import write_figures
         paths = write_figures(args.figures, spec, task, denoiser, per_seed[seeds[0]], seeds[0],

@@ -80,6 +80,15 @@ def test_other_settings_evaluate_a_checkpoint(tiny_run, tmp_path):
         assert "SR_ordered" not in result["rows"][0]
 
 
+def test_profile_writes_a_trace(tiny_run, tmp_path):
+    out, _ = tiny_run
+    cc.main("p_mo2g", ["--checkpoint", str(out / "train"), "--episodes", "2", "--batch-size",
+                       "2", "--num-steps", "2", "--warm-num-steps", "2", "--modes",
+                       "one_shot", "--profile", str(tmp_path / "prof"), "--no-progress"])
+    traces = [f for _, _, files in os.walk(tmp_path / "prof") for f in files]
+    assert any(f.endswith((".xplane.pb", ".trace.json.gz")) for f in traces), traces
+
+
 def test_missing_checkpoint_says_how_to_get_one(tmp_path, capsys):
     with pytest.raises(SystemExit) as err:
         cc.main("p_mo2g", ["--checkpoint", str(tmp_path / "nothing"), "--episodes", "2"])
