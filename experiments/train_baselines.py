@@ -194,10 +194,10 @@ def write_note(out_dir, name, method, summaries, results, command, remarks=()):
         if not rows:
             continue
         seeds = ",".join(map(str, result.get("seeds", [result["seed"]])))
+        dd_note = (f"; {result.get('dd_num_steps')} DDIM steps per move, guidance "
+                   f"{result.get('dd_guidance')}" if name == "dd" else "")
         lines += [f"`python -m experiments.baselines_eval --episodes {result['episodes']} "
-                  f"--seeds {seeds}` ({result.get('machine', '')}; DD-style: "
-                  f"{result.get('dd_num_steps')} DDIM steps per move, guidance "
-                  f"{result.get('dd_guidance')}):", "", "```"]
+                  f"--seeds {seeds}` ({result.get('machine', '')}{dd_note}):", "", "```"]
         lines += ["setting  " + cc.format_table(rows).splitlines()[0]]
         for r in rows:
             lines.append(f"{r['setting']:<8} " + cc.format_table([r]).splitlines()[2])

@@ -28,8 +28,8 @@ class BCTrainConfig:
     settings ((setting, count) per sum(counts) examples), checkpoint_every / log_every."""
 
     seed: int = 0
-    steps: int = 6000
-    batch_size: int = 256
+    steps: int = 10000
+    batch_size: int = 128
     lr: float = 1e-3
     mixture: tuple = common.TRAINING_MIXTURE
     checkpoint_every: int = 2000
