@@ -626,8 +626,9 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
         validation keys); used when ``train_config.val_every > 0``.
       mesh: a ``diffplan.sharding.data_mesh`` (default: all devices).
       tensorboard: also log to ``out_dir/tb`` if tensorboardX is importable.
-      callback: called as ``callback(step, record)`` after every metrics record (may raise to
-        stop training; nothing is saved then beyond the last checkpoint).
+      callback: called as ``callback(step, record)`` after every metrics record, once that
+        step's checkpoint (if any) is written; it may raise to stop training (a checkpoint of
+        this very step is kept, nothing later is saved).
 
     Returns:
       ``TrainResult(state, final_loss, last_metrics)``.
@@ -751,8 +752,6 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
                 if bar is not None:
                     bar.set_postfix(loss=f"{record['loss']:.4f}",
                                     steps_s=f"{record['steps_per_sec']:.2f}")
-                if callback is not None:
-                    callback(done, record)
             if do_ckpt:
                 meta = dict(metadata, wall_time=wall_before + time.perf_counter() - t0)
                 if final_loss is not None:
@@ -761,6 +760,8 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
                 ckpt.save_checkpoint(out_dir, done, state, meta)
                 last_ckpt = done
                 t_last += time.perf_counter() - t_save  # steps/s measures training only
+            if callback is not None and (do_log or do_val):
+                callback(done, last_record)
     finally:
         if bar is not None:
             bar.close()

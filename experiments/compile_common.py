@@ -176,7 +176,7 @@ def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
 
 def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: int | None = None,
                   progress: bool = True, model_size: str = "default",
-                  checkpoint_every: int = 500):
+                  checkpoint_every: int = 500, callback=None):
     """Trains the setting's denoiser into out_dir with the grid world's training recipe
     (envs.gridworld.training.Recipe), resuming if out_dir holds a checkpoint.
     Returns (ema params, model config, seconds)."""
@@ -189,7 +189,7 @@ def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: i
     result = train(Denoiser(model_config), model_config,
                    spec.train_config(seed, steps, checkpoint_every),
                    recipe.batch_fn(), out_dir, init_batch=recipe.init_batch(),
-                   progress=progress,
+                   progress=progress, callback=callback,
                    extra_metadata={**recipe.metadata(), "model_size": model_size})
     return result.ema_params, model_config, time.time() - start
 

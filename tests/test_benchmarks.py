@@ -64,3 +64,16 @@ def test_bench_planner_tiny_run(tmp_path):
     assert [(r["method"], r["batch"]) for r in data["rows"]] == [("jitted", 2), ("eager", 2)]
     assert all(r["episodes_per_second"] > 0 for r in data["rows"])
     assert data["rows"][0]["speedup"] > 0
+
+
+def test_bench_train_tiny_run(tmp_path):
+    """bench_train pauses the training at each evaluation and resumes it: 4 steps, evaluated
+    after 2 and 4."""
+    from experiments import bench_train
+
+    result = bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
+                               "--max-steps", "4", "--episodes", "2", "--model-size", "tiny",
+                               "--json", str(tmp_path / "b.json"), "--no-progress"])
+    assert [r["step"] for r in result["rows"]] == [2, 4]
+    assert result["steps_per_second"] > 0
+    assert json.loads((tmp_path / "b.json").read_text())["experiment"] == "bench_train"
