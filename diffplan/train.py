@@ -626,9 +626,10 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
         validation keys); used when ``train_config.val_every > 0``.
       mesh: a ``diffplan.sharding.data_mesh`` (default: all devices).
       tensorboard: also log to ``out_dir/tb`` if tensorboardX is importable.
-      callback: called as ``callback(step, record)`` after every metrics record, once that
-        step's checkpoint (if any) is written; it may raise to stop training (a checkpoint of
-        this very step is kept, nothing later is saved).
+      callback: called as ``callback(step, record)`` after every metrics record and every
+        checkpoint (record: the latest metrics record, or None), once that step's checkpoint
+        (if any) is written; it may raise to stop training (a checkpoint of this very step is
+        kept, nothing later is saved).
 
     Returns:
       ``TrainResult(state, final_loss, last_metrics)``.
@@ -760,7 +761,7 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
                 ckpt.save_checkpoint(out_dir, done, state, meta)
                 last_ckpt = done
                 t_last += time.perf_counter() - t_save  # steps/s measures training only
-            if callback is not None and (do_log or do_val):
+            if callback is not None and (do_log or do_val or do_ckpt):
                 callback(done, last_record)
     finally:
         if bar is not None:

@@ -9,7 +9,7 @@ checkpoint; diffplan.train resumes bit-exactly) to evaluate the EMA weights on -
 validation P-MO2G episodes (seed 1000, never an evaluation seed) in --mode. Reports for every
 evaluation the training wall time so far (the checkpoint's recorded time: training only,
 evaluations excluded), SR and SR_ordered, and the first step at which SR >= --target.
---max-steps stops earlier. Steps/s is the mean over the training's logged windows.
+--max-steps stops earlier. Steps/s: steps over training seconds (checkpointing included).
 """
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def main(argv=None) -> dict:
     evaluations, reached = [], None
 
     def pause(step, record):
-        if step % args.eval_every == 0 and step < total:
+        if step % args.eval_every == 0 or step >= total:
             raise _Pause()
 
     while True:
@@ -90,12 +90,10 @@ def main(argv=None) -> dict:
             reached = evaluations[-1]
         if finished or step >= total:
             break
-    metrics_path = os.path.join(args.train_dir, "metrics.jsonl")
-    with open(metrics_path) as f:
-        rates = [json.loads(line)["steps_per_sec"] for line in f if line.strip()]
+    last = evaluations[-1]
     result = {"experiment": "bench_train", "episodes": args.episodes,
               "seed": cc.VALIDATION_SEED, "mode": args.mode, "target_SR": args.target,
-              "steps_per_second": sum(rates) / max(len(rates), 1),
+              "steps_per_second": last["step"] / max(last["train_seconds"], 1e-9),
               "reached": reached, "rows": [dict(method=f"step {e['step']}", **e)
                                            for e in evaluations],
               "final_metadata_step": int(read_metadata(args.train_dir)["step"])}
