@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 
 from diffplan.jax_cache import enable_compilation_cache
@@ -110,9 +109,7 @@ def main(argv=None):
               "rows": rows}
     print(cc.format_table(rows))
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
+        cli.write_json(args.json, result)
     return result
 
 

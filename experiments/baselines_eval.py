@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import os
 import sys
 import time
@@ -204,10 +203,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                          f"{jax.devices()[0].platform}",
               "rows": rows}
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
-        print(f"wrote {args.json}")
+        cli.write_json(args.json, result)
     return result
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import heapq
-import json
 import os
 import resource
 import sys
@@ -146,7 +145,7 @@ def eager_rollout(denoiser, config, episodes, num_steps: int, max_moves: int | N
     tokens = np.asarray(episodes.tokens)
     ab_all = np.asarray(denoiser.schedule.alphas_cumprod)
     ts = np.asarray(timestep_sequence(denoiser.schedule.num_train_steps, num_steps))
-    c, g = denoiser.num_cond_channels, denoiser.num_gen_channels
+    g = denoiser.num_gen_channels
     rng = np.random.default_rng(seed)
     start, moves, calls = time.perf_counter(), 0, 0
     for move in range(config.max_steps if max_moves is None else max_moves):
@@ -286,9 +285,7 @@ def main(argv=None) -> int:
               "rows": rows, "device": str(jax.devices()[0]), "jax_version": jax.__version__,
               "cpu_count": os.cpu_count()}
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
+        cli.write_json(args.json, result)
     return 0
 
 

@@ -14,7 +14,6 @@ evaluations excluded), SR and SR_ordered, and the first step at which SR >= --ta
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
@@ -106,9 +105,7 @@ def main(argv=None) -> dict:
              f"{reached['train_seconds'] / 60:.1f} min of training" if reached else
              f"SR never reached {args.target}"))
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
+        cli.write_json(args.json, result)
     return result
 
 

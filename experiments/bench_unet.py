@@ -33,7 +33,6 @@ sampler rows add "num_steps", "denoiser_calls", "ms_per_plan", "ms_per_call" and
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import pathlib
 import statistics
@@ -42,7 +41,6 @@ import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 
 from diffplan.jax_cache import enable_compilation_cache

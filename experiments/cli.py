@@ -64,3 +64,32 @@ def only_with(parser: argparse.ArgumentParser, args: argparse.Namespace, needed:
     if given:
         parser.error(f"{', '.join(given)} only make{'s' if len(given) == 1 else ''} sense with "
                      f"--{needed}")
+
+
+def write_json(path: str, result: dict, announce: bool = True) -> None:
+    """Writes ``result`` as indented JSON to ``path`` atomically (a temporary file in the same
+    directory, then renamed: a crash mid-write never leaves half a file), creating the
+    directory. A failure (full disk, permissions changed during the run) ends the program with
+    one line on stderr, exit code 3; what was printed before stays on screen."""
+    import json
+    import sys
+    import tempfile
+
+    directory = os.path.dirname(os.path.abspath(path))
+    tmp = None
+    try:
+        os.makedirs(directory, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=directory, prefix=".tmp-",
+                                         suffix=".json", delete=False) as f:
+            tmp = f.name
+            json.dump(result, f, indent=2)
+            f.write("\n")
+        os.replace(tmp, path)
+    except OSError as e:
+        print(f"error: cannot write {path}: {e.strerror or e}", file=sys.stderr)
+        raise SystemExit(3)
+    finally:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+    if announce:
+        print(f"wrote {path}")

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
 import os
 import sys
 import time
@@ -472,6 +471,11 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--profile", metavar="DIR",
                    help="write a JAX profiler trace (TensorBoard / Perfetto) of one batch of "
                         "the main planning mode to DIR, after the evaluation")
+    p.add_argument("--baselines", nargs="?", const="bc,cql,dd", default=None,
+                   metavar="NAMES",
+                   help="add rows of the shipped baselines (checkpoints/baselines; "
+                        "comma-separated of bc,cql,dd; the flag alone: all three), measured on "
+                        "the same episodes and seeds as the planner's rows")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
 
@@ -548,7 +552,27 @@ def check_args(parser, args, spec):
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:
         parser.error(f"unknown --modes {bad}; choose from {MODES}")
+    args.baselines = check_baselines(parser, args.baselines)
     return modes
+
+
+def check_baselines(parser, names: str | None) -> tuple[str, ...]:
+    """The --baselines names (distinct, known, with a shipped checkpoint); () without it."""
+    if names is None:
+        return ()
+    from diffplan.baselines.policies import BASELINES
+
+    chosen = tuple(n.strip() for n in names.split(",") if n.strip())
+    bad = [n for n in chosen if n not in BASELINES]
+    if bad or not chosen or len(set(chosen)) != len(chosen):
+        parser.error(f"--baselines must be distinct names of {','.join(BASELINES)}, got "
+                     f"{names!r}")
+    root = os.path.join(CHECKPOINT_ROOT, "baselines")
+    missing = [n for n in chosen if not os.path.isdir(os.path.join(root, n))]
+    if missing:
+        parser.error(f"no shipped baseline checkpoint for {','.join(missing)} under {root}: "
+                     "make them with `python -m experiments.train_baselines --ship`")
+    return chosen
 
 
 def fail(message: str, code: int = 2):
@@ -636,6 +660,14 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                 for (seed, eps), (r, t) in zip(per_seed.items(), outs)}
         rows.append(row)
         rollouts[mode] = rollout_np
+    if args.baselines:
+        from experiments.baselines_eval import baseline_rows
+
+        try:
+            rows += baseline_rows(setting, seeds, args.episodes, args.batch_size, progress,
+                                  methods=args.baselines, episodes_by_seed=per_seed)
+        except (FileNotFoundError, ValueError) as e:
+            fail(f"cannot evaluate the baselines: {e}")
 
     main_mode = spec.main_mode if spec.main_mode in modes else modes[0]
     result = {
@@ -665,10 +697,9 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     if len(seeds) > 1:
         print(format_intervals(rows, seeds))
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
-        print(f"wrote {args.json}")
+        from experiments import cli
+
+        cli.write_json(args.json, result)
     if args.trajectories:
         write_trajectories(args.trajectories, rollouts[main_mode], episodes, grid_config)
         print(f"wrote {args.trajectories} ({METHOD_NAMES[main_mode]} trajectories)")

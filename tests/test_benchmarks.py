@@ -77,3 +77,24 @@ def test_bench_train_tiny_run(tmp_path):
     assert [r["step"] for r in result["rows"]] == [2, 4]
     assert result["steps_per_second"] > 0
     assert json.loads((tmp_path / "b.json").read_text())["experiment"] == "bench_train"
+
+
+def test_bench_release_says_how_to_get_torch_when_absent(monkeypatch, capsys):
+    """Without torch/diffusers (CI installs neither) the benchmark says how to get them, in one
+    line, and exits 2."""
+    import sys
+
+    from experiments import bench_release
+
+    monkeypatch.setitem(sys.modules, "torch", None)
+    assert bench_release.main([]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and '.[anchors]' in err[0]
+
+
+def test_release_configuration_is_the_published_one():
+    from experiments import bench_release
+
+    cfg = bench_release.RELEASE_CONFIG
+    assert cfg["in_channels"] == 514 and cfg["block_out_channels"] == (256, 512, 1024)
+    assert cfg["cross_attention_dim"] == 1024 and cfg["out_channels"] == 2

@@ -80,6 +80,25 @@ def test_other_settings_evaluate_a_checkpoint(tiny_run, tmp_path):
         assert "SR_ordered" not in result["rows"][0]
 
 
+def test_baseline_rows_beside_the_planner(tiny_run, tmp_path):
+    """--baselines adds BC's and CQL's rows, measured on the planner's episodes: equal to
+    baselines_eval's rows for the same seeds (the table is the same measurement)."""
+    from experiments.baselines_eval import baseline_rows
+
+    out, _ = tiny_run
+    result = cc.main("1o1g", ["--checkpoint", str(out / "train"), "--episodes", "4",
+                              "--seeds", "7,8", "--batch-size", "4", "--num-steps", "2",
+                              "--modes", "one_shot", "--baselines", "bc,cql", "--no-progress"])
+    rows = result["rows"]
+    assert [r["method"] for r in rows] == ["one-shot", "BC", "CQL"]
+    expected = baseline_rows("1o1g", (7, 8), 4, 4, False, methods=("bc", "cql"))
+    for row, want in zip(rows[1:], expected):
+        assert row["SR"] == want["SR"] and row["path_f1"] == want["path_f1"]
+        assert {s: v["SR"] for s, v in row["per_seed"].items()} == {
+            s: v["SR"] for s, v in want["per_seed"].items()}
+        assert len(row["SR_ci95"]) == 2
+
+
 def test_profile_writes_a_trace(tiny_run, tmp_path):
     out, _ = tiny_run
     cc.main("p_mo2g", ["--checkpoint", str(out / "train"), "--episodes", "2", "--batch-size",
@@ -114,6 +133,8 @@ BAD_INVOCATIONS = [
     (["--seeds", "1,1"], "distinct"),
     (["--checkpoint", "{tmp}/nothing"], "no checkpoint in"),
     (["--checkpoint", "{tmp}/ckpt_file"], "no checkpoint in"),
+    (["--baselines", "bc,ppo"], "--baselines must be distinct names"),
+    (["--baselines", "bc,bc"], "--baselines must be distinct names"),
 ]
 
 
