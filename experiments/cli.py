@@ -93,3 +93,30 @@ def write_json(path: str, result: dict, announce: bool = True) -> None:
             os.unlink(tmp)
     if announce:
         print(f"wrote {path}")
+
+
+def add_training_flags(parser: argparse.ArgumentParser, *, training_name: str, served: str,
+                       train_steps: int, checkpoint_every: int, model_sizes) -> None:
+    """The flags of an experiment's ``--checkpoint`` / ``--train``: --checkpoint, --train,
+    --train-dir, --train-steps, --train-seed, --checkpoint-every, --model-size (defaults None:
+    :func:`only_with` tells which were given without --train). training_name: the shipped
+    checkpoints/<name> and runs/<name>; served: what the one denoiser serves (for --help)."""
+    parser.add_argument("--checkpoint", metavar="DIR",
+                        help=f"evaluate this checkpoint (default: the shipped "
+                             f"checkpoints/{training_name}, or the --train output)")
+    parser.add_argument("--train", action="store_true",
+                        help="train from scratch (resumes if --train-dir holds a checkpoint), "
+                             "then evaluate the result")
+    parser.add_argument("--train-dir", metavar="DIR", default=None,
+                        help=f"training output directory (default runs/{training_name}; one "
+                             f"denoiser serves {served})")
+    parser.add_argument("--train-steps", type=int, default=None,
+                        help=f"optimisation steps of --train (default {train_steps})")
+    parser.add_argument("--train-seed", type=int, default=None,
+                        help="training seed of --train (default 0)")
+    parser.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+                        help=f"--train writes a checkpoint every N steps (default "
+                             f"{checkpoint_every}); a killed training resumes from the last one")
+    parser.add_argument("--model-size", choices=sorted(model_sizes), default=None,
+                        help="denoiser size for --train ('tiny' is for smoke tests; default "
+                             "'default')")

@@ -395,6 +395,8 @@ def write_trajectories(path, rollout, episodes, grid_config):
 # ------------------------------------------------------------------------------------ CLI
 
 def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
+    from experiments import cli
+
     p = argparse.ArgumentParser(
         prog=f"python -m experiments.{spec.name}",
         description=(f"CompILE grid world, setting {spec.setting}: evaluate the diffusion planner "
@@ -415,28 +417,12 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--trajectories", metavar="PATH.npz",
                    help="write the executed trajectories of the main row and the episodes "
                         "(of every seed, in order)")
-    p.add_argument("--checkpoint", metavar="DIR",
-                   help=f"evaluate this checkpoint (default: the shipped "
-                        f"checkpoints/{TRAINING_NAME}, or the --train output)")
-    p.add_argument("--train", action="store_true",
-                   help="train from scratch (resumes if --train-dir holds a checkpoint), then "
-                        "evaluate the result")
-    p.add_argument("--train-dir", metavar="DIR", default=None,
-                   help=f"training output directory (default runs/{TRAINING_NAME}; one "
-                        "denoiser serves all three settings)")
-    p.add_argument("--train-steps", type=int, default=None,
-                   help=f"optimisation steps of --train (default {spec.train_steps})")
-    p.add_argument("--train-seed", type=int, default=None, help="training seed of --train "
-                   "(default 0)")
-    p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
-                   help="--train writes a checkpoint every N steps (default 500); a killed "
-                        "training resumes from the last one")
+    cli.add_training_flags(p, training_name=TRAINING_NAME, served="all three settings",
+                           train_steps=spec.train_steps, checkpoint_every=500,
+                           model_sizes=MODEL_SIZES)
     p.add_argument("--prediction", choices=("eps", "x0"), default=None,
                    help="network target of --train: the noise (the paper) or the clean plan "
                         f"(default {spec.prediction}; evaluation follows the checkpoint)")
-    p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default=None,
-                   help="denoiser size for --train ('tiny' is for smoke tests; default "
-                        "'default')")
     p.add_argument("--modes", default=",".join(spec.modes),
                    help=f"comma-separated planning modes to evaluate (default "
                         f"{','.join(spec.modes)})")

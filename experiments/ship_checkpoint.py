@@ -1,9 +1,11 @@
-"""Exports a grid-world training run as a shipped evaluation checkpoint with its NOTE.md.
+"""Exports a training run as a shipped evaluation checkpoint with its NOTE.md.
 
     python -m experiments.ship_checkpoint --train-dir runs/compile_gridworld \
         --results results/compile_p_mo2g.json [--results results/compile_mo1g.json ...]
+    python -m experiments.ship_checkpoint --world kuka --train-dir runs/kuka \
+        --results results/kuka_stacking.json --results results/kuka_rearrangement.json
 
-writes checkpoints/compile_gridworld/ (EMA parameters + metadata only) and NOTE.md beside them:
+writes checkpoints/compile_gridworld/ (or checkpoints/kuka/) (EMA parameters + metadata only) and NOTE.md beside them:
 the training command, seed, steps, training time read from the run's metrics.jsonl, and the
 results tables of the given experiment JSONs (contract 2), so every shipped number can be traced
 to the command that measured it.
@@ -29,33 +31,66 @@ def _training_summary(train_dir):
     return meta, last
 
 
-def write_note(out_dir, train_dir, results, command, remarks=()):
+WORLDS = {
+    # world: (default destination, default training command, what the model is)
+    "gridworld": (os.path.join(cc.CHECKPOINT_ROOT, cc.TRAINING_NAME),
+                  "python -m experiments.compile_p_mo2g --train",
+                  "The grid-world denoiser shipped with diffplan (one model for 1O1G, MO1G and "
+                  "P-MO2G)."),
+    "kuka": (os.path.join(cc.CHECKPOINT_ROOT, "kuka"),
+             "python -m experiments.kuka_stacking --train",
+             "The Kuka block-world denoiser shipped with diffplan (one model for stacking and "
+             "rearrangement, single and multiple constraints, canonical and paraphrased "
+             "instructions)."),
+}
+
+
+def _result_table(result) -> str:
+    if str(result.get("experiment", "")).startswith("kuka_"):
+        from experiments import kuka_common
+        return kuka_common.format_table(result["rows"])
+    return cc.format_table(result["rows"])
+
+
+def _result_command(result) -> str:
+    seeds = result.get("seeds") or [result["seed"]]
+    seed_flag = (f"--seeds {','.join(map(str, seeds))}" if len(seeds) > 1
+                 else f"--seed {seeds[0]}")
+    extra = f" --language {result['language']}" if result.get("language") not in (
+        None, "canonical") else ""
+    return (f"python -m experiments.{result['experiment']} --episodes {result['episodes']} "
+            f"{seed_flag}{extra}")
+
+
+def write_note(out_dir, train_dir, results, command, remarks=(), world: str = "gridworld"):
     meta, last = _training_summary(train_dir)
     train_config = meta.get("train_config", {})
     lines = [
         f"# {os.path.basename(os.path.normpath(out_dir))}",
         "",
-        "The grid-world denoiser shipped with diffplan (one model for 1O1G, MO1G and P-MO2G).",
+        WORLDS[world][2],
         "",
         "## How it was made",
         "",
         f"- command: `{command}`",
         f"- training seed: {train_config.get('seed')}; steps: {meta.get('step')}; batch "
         f"{train_config.get('batch_size')}; lr {train_config.get('lr')}",
-        f"- mixture per batch: {meta.get('extra', {}).get('mixture')}",
+        *([f"- mixture per batch: {meta['extra']['mixture']}"]
+          if "mixture" in meta.get("extra", {}) else []),
+        *([f"- task specs (kind, multi, language), equal shares: {meta['extra']['specs']}"]
+          if "specs" in meta.get("extra", {}) else []),
         f"- training wall time: {last.get('wall_time', float('nan')) / 60:.1f} min on a 2-core "
         f"CPU (last logged loss {last.get('loss', float('nan')):.4f})",
         "- exported with: `python -m experiments.ship_checkpoint` (EMA parameters only)",
         *[f"- {remark}" for remark in remarks],
         "",
-        "## What it achieved (SR in percent, measured on executed trajectories)",
+        "## What it achieved (SR in percent, measured on what the agent executed: trajectories "
+        "with collisions in the grid world, final physical block poses in the Kuka world)",
         "",
     ]
     for result in results:
-        lines += [f"`python -m experiments.{result['experiment']} --episodes "
-                  f"{result['episodes']} --seed {result['seed']}`"
-                  f" ({result.get('machine', '')}):", "", "```",
-                  cc.format_table(result["rows"]), "```", ""]
+        lines += [f"`{_result_command(result)}` ({result.get('machine', '')}):", "", "```",
+                  _result_table(result), "```", ""]
     with open(os.path.join(out_dir, "NOTE.md"), "w") as f:
         f.write("\n".join(lines))
 
@@ -64,17 +99,25 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m experiments.ship_checkpoint",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--train-dir", required=True, help="the training run to export")
-    p.add_argument("--out", default=os.path.join(cc.CHECKPOINT_ROOT, cc.TRAINING_NAME),
-                   help="destination (default checkpoints/compile_gridworld)")
+    p.add_argument("--world", choices=sorted(WORLDS), default="gridworld",
+                   help="which world's denoiser the run trained (sets the defaults of --out "
+                        "and --command and NOTE.md's description; default gridworld)")
+    p.add_argument("--out", default=None,
+                   help="destination (default checkpoints/compile_gridworld, or "
+                        "checkpoints/kuka with --world kuka)")
     p.add_argument("--results", action="append", default=[], metavar="JSON",
                    help="experiment results (contract 2) to record in NOTE.md; repeatable")
-    p.add_argument("--command", default="python -m experiments.compile_p_mo2g --train",
-                   help="the training command recorded in NOTE.md")
+    p.add_argument("--command", default=None,
+                   help="the training command recorded in NOTE.md (default: the world's "
+                        "--train command)")
     p.add_argument("--remark", action="append", default=[],
                    help="a sentence added to NOTE.md's 'How it was made' (e.g. what else ran "
                         "on the machine during training); repeatable")
     p.add_argument("--overwrite", action="store_true", help="replace an existing export")
     args = p.parse_args(argv)
+    out_default, command_default, _ = WORLDS[args.world]
+    args.out = out_default if args.out is None else args.out
+    args.command = command_default if args.command is None else args.command
     from diffplan.checkpoint import CorruptCheckpointError, export_eval_checkpoint, latest_step
     from experiments import cli
     if latest_step(args.train_dir) is None:
@@ -95,7 +138,7 @@ def main(argv=None):
         p.error(str(e))
     except ValueError as e:
         p.error(str(e))
-    write_note(args.out, args.train_dir, results, args.command, args.remark)
+    write_note(args.out, args.train_dir, results, args.command, args.remark, args.world)
     print(f"wrote {args.out} and its NOTE.md")
 
 

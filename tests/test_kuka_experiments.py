@@ -1,5 +1,7 @@
 """Tiny end-to-end runs of the Kuka experiment CLIs (contracts 2 and 4), recomputing the
-main row's SR from the written states with a plain-numpy check."""
+main row's SR from the written states with a plain-numpy check: the scripted expert, and the
+planner after `--train` of a few steps (the default model size, so that the evaluation's
+compiled rollout is the one test_kuka_shipped_checkpoint uses)."""
 from __future__ import annotations
 
 import json
@@ -30,11 +32,17 @@ def _recomputed_sr(states, rows=None):
     return 100.0 * held / total
 
 
+def _load_states(path):
+    with np.load(path) as f:
+        return {k: f[k] for k in f.files}
+
+
 @pytest.mark.parametrize("kind", ["stacking", "rearrangement"])
 def test_cli_end_to_end(kind, tmp_path):
     out_json, out_npz, figs = tmp_path / "r.json", tmp_path / "s.npz", tmp_path / "figs"
     result = kuka_common.main(kind, [
-        "--episodes", "4", "--seed", "5", "--batch-size", str(kf.BATCH), "--json", str(out_json),
+        "--policy", "expert", "--episodes", "4", "--seed", "5", "--batch-size", str(kf.BATCH),
+        "--json", str(out_json),
         "--states", str(out_npz), "--figures", str(figs), "--num-figures", "1", "--no-progress"])
     data = json.loads(out_json.read_text())
     assert data == json.loads(json.dumps(result))
@@ -42,8 +50,7 @@ def test_cli_end_to_end(kind, tmp_path):
     main, single, multi = data["rows"]
     assert data["states_method"] == main["method"] == "expert"
     assert [single["column"], multi["column"]] == ["single", "multi"]
-    with np.load(out_npz) as f:
-        states = {k: f[k] for k in f.files}
+    states = _load_states(out_npz)
     assert set(states) == STATE_FIELDS
     n = 8
     assert states["block_pos"].shape == (n, 4, 3) and states["block_pos"].dtype == np.float32
@@ -67,16 +74,99 @@ def test_cli_end_to_end(kind, tmp_path):
     assert len(list(figs.glob("*.png"))) == 2
 
 
-def test_cli_rejects_bad_input(capsys):
+@pytest.mark.parametrize("argv, message", [
+    (["--episodes", "0"], "--episodes must be >= 1"),
+    (["--states", "out.txt"], "must end in .npz"),
+    (["--policy", "expert", "--train"], "only make sense with --policy planner"),
+    (["--train", "--checkpoint", "x"], "exclude each other"),
+    (["--train-steps", "5"], "only makes sense with --train"),
+    (["--modes", "two_shot"], "--modes must be distinct modes"),
+    (["--seeds", "1,1"], "--seeds must be distinct"),
+])
+def test_cli_rejects_bad_input(argv, message, capsys):
     with pytest.raises(SystemExit) as info:
-        kuka_common.main("stacking", ["--episodes", "0"])
+        kuka_common.main("stacking", argv)
     assert info.value.code == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()  # argparse's usage (wrapped), then one error line
+    assert message in lines[-1] and "Traceback" not in err
+
+
+def test_missing_checkpoint_says_how_to_get_one(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
-        kuka_common.main("rearrangement", ["--policy", "planner"])
+        kuka_common.main("rearrangement", ["--checkpoint", str(tmp_path / "none"),
+                                           "--no-progress"])
     assert info.value.code == 2
-    assert "not available yet (issue 11)" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        kuka_common.main("stacking", ["--states", "out.txt"])
+    err = capsys.readouterr().err.strip()
+    assert "kuka_rearrangement --train" in err and len(err.splitlines()) == 1
+
+
+# ------------------------------------------------------------------------------ planner
+
+@pytest.fixture(scope="module")
+def train_dir(tmp_path_factory):
+    """One tiny training (3 steps of the default model) shared by both experiments: the
+    second `--train` finds it finished and evaluates it."""
+    return tmp_path_factory.mktemp("kuka_train") / "run"
+
+
+def _planner_run(kind, train_dir, out, extra):
+    argv = ["--train", "--train-steps", "3", "--train-dir", str(train_dir), "--episodes", "4",
+            "--seed", "6", "--batch-size", str(kf.BATCH), "--json", str(out / "r.json"),
+            "--states", str(out / "s.npz"), "--no-progress", *extra]
+    return kuka_common.main(kind, argv)
+
+
+def _check_planner_result(result, out, kind, modes, languages):
+    data = json.loads((out / "r.json").read_text())
+    assert data == json.loads(json.dumps(result))
+    assert data["policy"] == "planner" and data["modes"] == list(modes)
+    assert data["checkpoint"] is not None and data["train_seconds"] is not None
+    main, rows = data["rows"][0], data["rows"][1:]
+    assert data["states_method"] == main["method"] == "planner on-the-fly"
+    assert len(rows) == 2 * len(modes) * len(languages)
+    for row in rows:
+        assert 0.0 <= row["SR_diffuser"] <= 100.0 and 0.0 <= row["SR"] <= 100.0
+        calls = row["denoiser_calls_per_episode"]
+        if row["mode"] == "one_shot":
+            assert calls == 10.0 and row["plans_per_episode"] == 1.0
+        else:  # one 10-step plan per placement
+            assert calls == pytest.approx(10.0 * row["placements_per_episode"])
+    states = _load_states(out / "s.npz")
+    assert set(states) == STATE_FIELDS and states["block_pos"].shape == (8, 4, 3)
+    # Contract 4: the main row's SR is the share of instructed constraints holding.
+    assert main["SR"] == pytest.approx(_recomputed_sr(states), abs=1e-9)
+    single, multi = [r for r in rows if r["mode"] == "on_the_fly"
+                     and r["language"] == languages[0]]
+    assert single["SR"] == pytest.approx(_recomputed_sr(states, range(4)), abs=1e-9)
+    assert multi["SR"] == pytest.approx(_recomputed_sr(states, range(4, 8)), abs=1e-9)
+    multi_count = 3 if kind == "stacking" else 2
+    counts = (states["constraints"][..., 0] >= 0).sum(-1)
+    np.testing.assert_array_equal(counts, [1] * 4 + [multi_count] * 4)
+
+
+def test_stacking_planner_end_to_end(train_dir, tmp_path):
+    figs = tmp_path / "figs"
+    result = _planner_run("stacking", train_dir, tmp_path,
+                          ["--figures", str(figs), "--num-figures", "1"])
+    _check_planner_result(result, tmp_path, "stacking", ("on_the_fly", "one_shot"),
+                          ("canonical",))
+    names = sorted(p.name for p in figs.glob("*.png"))
+    assert names == ["stacking_multi_canonical_000.png", "stacking_single_canonical_000.png"]
+
+
+def test_rearrangement_planner_end_to_end_with_paraphrases(train_dir, tmp_path):
+    result = _planner_run("rearrangement", train_dir, tmp_path,
+                          ["--modes", "on_the_fly", "--language", "both"])
+    _check_planner_result(result, tmp_path, "rearrangement", ("on_the_fly",),
+                          ("canonical", "paraphrased"))
+    rows = result["rows"][1:]
+    assert [r["language"] for r in rows] == ["canonical"] * 2 + ["paraphrased"] * 2
+    assert all("paraphrased" in r["method"] for r in rows[2:])
+    # The states are those of the main (canonical) row's episodes.
+    states = _load_states(tmp_path / "s.npz")
+    for c, text in zip(states["constraints"], states["instruction"]):
+        assert str(text) == grammar.render(c, False)
 
 
 def test_videos_render_or_say_why(tmp_path, monkeypatch, capsys):
@@ -92,3 +182,21 @@ def test_videos_render_or_say_why(tmp_path, monkeypatch, capsys):
     assert kuka_common.write_videos(str(tmp_path / "w"), videos) == []
     lines = [ln for ln in capsys.readouterr().out.splitlines() if "no GL backend" in ln]
     assert len(lines) == 1
+
+
+def test_ship_kuka_checkpoint_with_its_note(train_dir, tmp_path):
+    """ship_checkpoint --world kuka exports the (tiny) run with a NOTE.md holding the training
+    command, the task specs and the Kuka results table; the export loads as the Kuka denoiser."""
+    from experiments import ship_checkpoint
+
+    out = tmp_path / "res"
+    out.mkdir()
+    _planner_run("rearrangement", train_dir, out, ["--modes", "on_the_fly"])
+    dest = tmp_path / "shipped"
+    ship_checkpoint.main(["--world", "kuka", "--train-dir", str(train_dir), "--out", str(dest),
+                          "--results", str(out / "r.json")])
+    note = (dest / "NOTE.md").read_text()
+    assert "kuka_stacking --train" in note and "task specs" in note and "SR_Diff" in note
+    assert "python -m experiments.kuka_rearrangement --episodes 4 --seed 6" in note
+    denoiser = kuka_common.load_checked(str(dest), kuka_common.NUM_STEPS, "stacking")
+    assert denoiser.plan_shape == (24, 24, 3)

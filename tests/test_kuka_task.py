@@ -260,3 +260,21 @@ def test_replan_triggers():
     with pytest.raises(ValueError):
         ktask.KukaTask(num_cond_channels=3)
     assert hash(task) == hash(ktask.KukaTask())
+
+
+def test_block_scores_prefer_the_block_the_map_covers():
+    """A 9-cell block under a goal blob (0.8) beats a 2-cell sliver of a covered block the blob
+    spilled onto (1.0): scores are sums, the best-matching +1/-1 target map; invisible blocks
+    score -inf."""
+    from envs.kuka.task import block_scores
+
+    top = np.full((24, 24), -1)
+    top[5:8, 5:8] = 1          # block 1: clear, 9 visible cells
+    top[8, 5:7] = 2            # block 2: a sliver of 2 visible cells
+    values = np.full((24, 24), -1.0)
+    values[5:8, 5:8] = 0.8
+    values[8, 5:7] = 1.0
+    scores = np.asarray(block_scores(top, jnp.asarray(values)))
+    assert np.argmax(scores) == 1
+    assert scores[1] == pytest.approx(7.2) and scores[2] == pytest.approx(2.0)
+    assert np.isneginf(scores[0]) and np.isneginf(scores[3])

@@ -67,7 +67,10 @@ def held(data) -> jax.Array:
 def initial_data(block_xy, arm_q=None):
     """mjx.Data at rest: blocks flat (identity orientation) on the floor at block_xy float (4, 2),
     the arm at arm_q (7,) (default scene.HOME_QPOS) with its servos targeting it, nothing held.
-    Positions are derived (mjx.forward), so the data is ready to step or observe."""
+    Positions are derived (mjx.kinematics), so the data is ready to observe; every mjx.step
+    derives everything else from qpos, qvel, ctrl, eq_active and qacc_warmstart again, so
+    stepping it gives bit for bit what stepping mjx.forward's data gives (tested), and it
+    compiles in a fraction of mjx.forward's time (a reset inside a jitted rollout)."""
     from mujoco import mjx
 
     model = mjx_model()
@@ -80,7 +83,7 @@ def initial_data(block_xy, arm_q=None):
     data = mjx.make_data(model)
     data = data.replace(qpos=jnp.concatenate([arm_q, blocks.ravel()]), ctrl=arm_q,
                         eq_active=jnp.zeros(n, jnp.uint8))
-    return mjx.forward(model, data)
+    return mjx.kinematics(model, data)
 
 
 def set_blocks(data, pos, quat):

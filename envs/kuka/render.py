@@ -1,8 +1,8 @@
 """Pictures of the Kuka world: top-down maps (matplotlib) and offscreen videos (mujoco.Renderer).
 
 Maps: :func:`draw_view` draws the planner's 24 x 24 view (the top block of each cell in its
-colour, the stack height written in it), optionally a path map and a goal cell; row 0 (north,
-+y) at the top. Figures use ``matplotlib.figure.Figure`` directly (Agg), so no display is needed
+colour, the stack height written in it), optionally a path map, a goal cell and a pick cell;
+row 0 (north, +y) at the top. Figures use ``matplotlib.figure.Figure`` directly (Agg), so no display is needed
 and the global backend is untouched.
 
 Videos: :func:`write_videos` renders recorded qpos frames (env.State.frames) into animated GIFs.
@@ -24,6 +24,7 @@ from envs.kuka import scene
 _EMPTY_RGB = (0.96, 0.96, 0.96)
 _PATH_RGB = (0.12, 0.12, 0.12)
 _GOAL_COLOR = "#d62728"
+_PICK_COLOR = "#111111"
 GL_BACKENDS = ("egl", "osmesa")
 FRAME_SIZE = (320, 240)
 
@@ -35,10 +36,10 @@ def view_image(top) -> np.ndarray:
     return colors[np.where(top < 0, len(scene.BLOCK_RGBA), top)]
 
 
-def draw_view(ax, top, height, path=None, goal=None, title: str | None = None):
+def draw_view(ax, top, height, path=None, goal=None, title: str | None = None, pick=None):
     """Draws a top-down view on a matplotlib Axes: cells coloured by their top block, stack
     heights > 1 written in, the path's cells (bool (24, 24)) shaded dark, the goal cell
-    (int (2,)) framed."""
+    (int (2,)) framed red, the pick cell (int (2,)) framed black."""
     top, height = np.asarray(top), np.asarray(height)
     size = top.shape[0]
     ax.imshow(view_image(top), interpolation="nearest", extent=(-0.5, size - 0.5, size - 0.5, -0.5))
@@ -53,6 +54,9 @@ def draw_view(ax, top, height, path=None, goal=None, title: str | None = None):
     if goal is not None:
         r, c = (int(v) for v in np.asarray(goal))
         ax.add_patch(_rect(r, c))
+    if pick is not None:
+        r, c = (int(v) for v in np.asarray(pick))
+        ax.add_patch(_rect(r, c, _PICK_COLOR))
     ax.plot([size / 2 - 0.5], [size / 2 - 0.5], marker="+", color="k", markersize=8)
     ax.set_xticks([])
     ax.set_yticks([])
@@ -60,10 +64,10 @@ def draw_view(ax, top, height, path=None, goal=None, title: str | None = None):
         ax.set_title(title, fontsize=8)
 
 
-def _rect(r, c):
+def _rect(r, c, color=_GOAL_COLOR):
     from matplotlib.patches import Rectangle
 
-    return Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, edgecolor=_GOAL_COLOR, linewidth=1.5)
+    return Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, edgecolor=color, linewidth=1.5)
 
 
 def episode_figure(path: str, panels, suptitle: str = "") -> str:
