@@ -38,10 +38,13 @@ DESCRIPTIONS = {
            "transitions (epsilon 1 -> 0.01 over 10k frames), reward minus the remaining "
            "instructed distance, double DQN + CQL(H) (alpha 1), gamma 0.99, tau 0.001, "
            "lr 1e-3; greedy.",
-    "dd": "Decision-Diffuser-style planner (the paper's DD): diffusion over trajectories of "
-          "the flattened 256-cell grid with a 1-D temporal UNet conditioned on the goal "
-          "vector, frame 0 (the current observation) in-painted, an inverse dynamics MLP "
-          "turning (frame 0, frame 1) into the move; re-plans every move.",
+    "dd": "Decision-Diffuser-style planner (the paper's DD): diffusion over 16-frame "
+          "trajectories of the flattened 256-cell grid with Diffuser's 1-D temporal UNet "
+          "(widths 32/64) conditioned on the goal vector, frame 0 (the current "
+          "observation) in-painted, an inverse dynamics MLP turning (frame 0, frame 1) into "
+          "the move; re-plans every move. Beyond Decision Diffuser: the clean trajectory is "
+          "predicted as frame 0 plus a change through a 256-unit head, the cells that change "
+          "weigh 51x in the loss (see diffplan/baselines/dd.py for why).",
 }
 
 
@@ -238,11 +241,15 @@ def main(argv: Sequence[str] | None = None):
     for flag in ("bc_steps", "cql_steps", "dd_steps", "id_steps", "cql_buffer"):
         cli.check_at_least(parser, "--" + flag.replace("_", "-"), getattr(args, flag), 2)
     cli.check_at_least(parser, "--checkpoint-every", args.checkpoint_every, 1)
+    cli.check_at_least(parser, "--seed", args.seed, 0)
     cli.check_output_dir(parser, "--run-dir", args.run_dir)
     if args.ship:
         cli.check_output_dir(parser, "--ship-dir", args.ship_dir)
-    elif args.results or args.remark or args.command:
-        parser.error("--results, --remark and --command only make sense with --ship")
+    elif args.results or args.remark or args.command or args.ship_dir != SHIP_DIR:
+        parser.error("--results, --remark, --command and --ship-dir only make sense with "
+                     "--ship")
+    if args.no_train and not args.ship:
+        parser.error("--no-train without --ship does nothing")
     bc_config, cql_config, dd_config = configs(args)
     enable_compilation_cache()
     if not args.no_train:

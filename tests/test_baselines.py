@@ -317,9 +317,11 @@ def test_train_baselines_cli_refuses_bad_arguments(capsys):
     from experiments import train_baselines as tb
 
     for argv in (["--baselines", "bc,xyz"], ["--bc-steps", "0"], ["--remark", "hi"],
-                 ["--ship", "--results", "missing.json"]):
+                 ["--ship", "--results", "missing.json"], ["--seed", "-1"],
+                 ["--ship-dir", "elsewhere"], ["--no-train"]):
         with pytest.raises(SystemExit) as e:
             tb.main(argv)
         assert e.value.code == 2
     err = capsys.readouterr().err
     assert "only make sense with --ship" in err and "cannot be read" in err
+    assert "--seed must be >= 0" in err and "does nothing" in err
