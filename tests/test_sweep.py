@@ -101,3 +101,15 @@ def test_two_devices_give_the_single_device_episodes(tiny_checkpoint, tmp_path):
         a, b = np.load(outs[1] / "traj" / name), np.load(outs[2] / "traj" / name)
         for key in ("positions", "steps", "success"):
             np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name} {key}")
+
+
+@pytest.mark.parametrize("name, seeds", [("p_mo2g_cheap_validation.json", {1000}),
+                                         ("p_mo2g_cheap_evaluation.json", {2001, 2002, 2003})])
+def test_cheap_replanning_sweeps_are_valid_and_keep_their_seeds(name, seeds):
+    """The README's cheaper re-planning tables: chosen on the validation seed only, reported on
+    the evaluation seeds only."""
+    with open(os.path.join(REPO, "experiments", "sweeps", name)) as f:
+        configs = json.load(f)
+    for i, c in enumerate(configs):
+        sweep.normalise(c, i)
+    assert {c["seed"] for c in configs} == seeds
