@@ -18,6 +18,7 @@ stream (envs.kuka.training.TRAIN_STREAM).
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -247,13 +248,24 @@ def load_checked(checkpoint: str, num_steps: int, kind: str):
 
 # ----------------------------------------------------------------------------- running
 
+@functools.lru_cache(maxsize=None)
+def _generate_fn():
+    """jitted (keys, spec) -> Episode batch, built once (a new jax.jit per call re-traced it
+    for every column and seed)."""
+    import jax
+
+    from envs.kuka import tasks
+
+    return jax.jit(jax.vmap(tasks.generate, in_axes=(0, None)), static_argnums=1)
+
+
 def generate_episodes(spec, n: int, seed: int, batch: int):
     """Episodes 0..n-1 of a seed (numpy Episode with a leading (n,) axis)."""
     import jax
 
     from envs.kuka import tasks
 
-    gen = jax.jit(jax.vmap(tasks.generate, in_axes=(0, None)), static_argnums=1)
+    gen = _generate_fn()
     parts = [jax.device_get(gen(tasks.episode_keys(seed, min(batch, n - lo), lo), spec))
              for lo in range(0, n, batch)]
     return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
@@ -619,11 +631,12 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
         from experiments import kuka_figures
 
         traces = {}
+        if planner_policy:
+            main_planner = Planner(denoiser, PlannerConfig(mode=main_mode,
+                                                           num_steps=args.num_steps))
         for spec in specs:
             eps = jax.tree.map(lambda x: x[:count], episodes[spec, seeds[0]])
             if planner_policy:
-                main_planner = Planner(denoiser, PlannerConfig(mode=main_mode,
-                                                               num_steps=args.num_steps))
                 traces[spec] = kuka_figures.trace(task, main_planner, eps,
                                                   planner_keys(seeds[0], np.arange(count)))
             else:
