@@ -9,7 +9,8 @@ checkpoint; diffplan.train resumes bit-exactly) to evaluate the EMA weights on -
 validation P-MO2G episodes (seed 1000, never an evaluation seed) in --mode. Reports for every
 evaluation the training wall time so far (the checkpoint's recorded time: training only,
 evaluations excluded), SR and SR_ordered, and the first step at which SR >= --target.
---max-steps stops earlier. Steps/s: steps over training seconds (checkpointing included).
+--max-steps stops earlier; --stop-at-target stops at the first evaluation that reaches
+--target (the rest of the run cannot change when it was first reached). Steps/s: steps over training seconds (checkpointing included).
 """
 from __future__ import annotations
 
@@ -39,6 +40,8 @@ def build_parser():
                    help="planning mode of the evaluations (default warm_start: the same SR "
                         "as on_the_fly on the validation episodes at a fifth of the cost)")
     p.add_argument("--target", type=float, default=99.0, help="SR to reach (default 99)")
+    p.add_argument("--stop-at-target", action="store_true",
+                   help="stop training at the first evaluation with SR >= --target")
     p.add_argument("--model-size", choices=sorted(cc.MODEL_SIZES), default="default")
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")
     p.add_argument("--no-progress", action="store_true")
@@ -87,7 +90,7 @@ def main(argv=None) -> dict:
               f"{row['SR']:.1f}, SR_ordered {row['SR_ordered']:.1f}", file=sys.stderr)
         if reached is None and row["SR"] >= args.target:
             reached = evaluations[-1]
-        if finished or step >= total:
+        if finished or step >= total or (args.stop_at_target and reached is not None):
             break
     last = evaluations[-1]
     result = {"experiment": "bench_train", "episodes": args.episodes,

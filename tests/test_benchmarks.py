@@ -79,6 +79,18 @@ def test_bench_train_tiny_run(tmp_path):
     assert json.loads((tmp_path / "b.json").read_text())["experiment"] == "bench_train"
 
 
+def test_bench_train_stops_at_target(tmp_path):
+    """--stop-at-target ends the run at the first evaluation that reaches --target (0 is
+    reached by any model), and reports that evaluation as the one that reached it."""
+    from experiments import bench_train
+
+    result = bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
+                               "--max-steps", "6", "--episodes", "2", "--model-size", "tiny",
+                               "--target", "0", "--stop-at-target", "--no-progress"])
+    assert [r["step"] for r in result["rows"]] == [2]
+    assert result["reached"]["step"] == 2
+
+
 def test_bench_release_says_how_to_get_torch_when_absent(monkeypatch, capsys):
     """Without torch/diffusers (CI installs neither) the benchmark says how to get them, in one
     line, and exits 2."""
