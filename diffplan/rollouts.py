@@ -21,7 +21,8 @@ from flax import struct
 
 from diffplan.planner import Planner, PlannerState
 
-__all__ = ["Rollout", "move", "rollout", "rollout_stream", "StreamRollout", "StreamCarry"]
+__all__ = ["Rollout", "default_chunk", "move", "rollout", "rollout_stream", "StreamRollout",
+           "StreamCarry"]
 
 
 @struct.dataclass
@@ -97,6 +98,16 @@ def _start_positions(task, states, n: int):
     return jnp.broadcast_to(start[:, None, :], (n, task.max_steps + 1, 2)).astype(jnp.int32)
 
 
+def default_chunk(batch: int) -> int:
+    """The denoiser sub-batch of :func:`rollout` for B episodes: max(32, B // 8), at most B
+    (and at least MIN_SUB_BATCH, see Planner.plan_batch). Plans are computed for the episodes
+    that need one, a sub-batch at a time, so small sub-batches stop finished episodes and
+    episodes that need no plan from costing forwards; on this CPU the UNet's calls/s is flat
+    from 32 to 256 rows (experiments/bench_planner's "bound" rows), so 32 costs nothing per
+    call. Per-episode results do not depend on it."""
+    return min(batch, max(32, batch // 8))
+
+
 def rollout(task, planner: Planner, keys, episodes, chunk: Optional[int] = None) -> Rollout:
     """Runs a batch of episodes with the planner; pure and jit-able.
 
@@ -105,8 +116,7 @@ def rollout(task, planner: Planner, keys, episodes, chunk: Optional[int] = None)
       planner: a diffplan.Planner.
       keys: (B,) PRNG keys, one per episode (each episode's planner key).
       episodes: the task's episode pytree with a leading batch axis B.
-      chunk: episodes per denoiser sub-batch (default: B, or B // 8 in k_shot mode, where
-        few episodes re-plan at once).
+      chunk: episodes per denoiser sub-batch (default: default_chunk(B)).
     Returns: a Rollout.
     """
     config = planner.config
@@ -114,7 +124,7 @@ def rollout(task, planner: Planner, keys, episodes, chunk: Optional[int] = None)
     planner_states = jax.vmap(planner.init)(keys, jax.vmap(task.tokens)(episodes))
     batch = keys.shape[0]
     if chunk is None:
-        chunk = max(1, batch // 8) if config.mode == "k_shot" else batch
+        chunk = default_chunk(batch)
     positions = _start_positions(task, states, batch)
     plan_shape = (batch,) + tuple(planner.plan_shape)
     first_plan = jnp.zeros(plan_shape, jnp.float32)

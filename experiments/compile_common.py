@@ -51,6 +51,14 @@ MODEL_SIZES = {
 }
 
 
+MODE_REPLAN = {"on_the_fly": "always", "warm_start": "on_change"}
+TRIGGER_WORDS = {"always": "before every move",
+                 "on_change": "when new cells were seen or the sub-goal was reached"}
+"""Each re-planning mode's default trigger: the paper-style on-the-fly row runs a full denoising
+before every move (the paper's Algorithm 1); the warm-start row, the cheap default, re-plans
+when the observation changed or the plan's sub-goal was reached."""
+
+
 @dataclasses.dataclass(frozen=True)
 class ExperimentSpec:
     """Everything a setting's experiment fixes: world, model, training and planning defaults."""
@@ -66,16 +74,19 @@ class ExperimentSpec:
     lr: float = 1e-3
     warmup_steps: int = 200
     num_steps: int = 10
-    # Warm re-plans: the previous plan re-noised to t ~ 66 (step 1 of a 3-step schedule) and
-    # denoised in two calls. Measured on 1000 P-MO2G episodes (seed 1000; on-the-fly 99.4 with
-    # 163 calls/episode): SR 99.1 with 40.9 calls/episode; 1 of 2 steps: 97.8 with 27.3;
-    # step 8 of the 10-step schedule (2 calls, t ~ 20): 86.2 with 68.5.
+    # Warm re-plans (the default of the warm-start row, chosen on validation seed 1000 x 1000
+    # P-MO2G episodes against paper-style on-the-fly, SR 100.0 at 152.2 calls/episode): the
+    # previous plan re-noised to step 1 of a 2-step schedule and denoised in one call, and only
+    # when new cells were seen or the sub-goal was reached (replan "on_change"): SR 100.0 at
+    # 11.5 calls/episode (3-step schedule: 100.0 at 22.0; re-planning before every move, 3/1:
+    # 100.0 at 31.4). Evaluation seeds 2001-2003: README, "Cheaper re-planning".
     warm_start_step: int = 1
-    warm_num_steps: int | None = 3
+    warm_num_steps: int | None = 2
     eval_batch: int = 250
     fresh_noise: bool = True
     eta: float = 0.0
-    replan: str = "always"
+    # Re-planning trigger of every re-planning row; None: each mode's own (MODE_REPLAN).
+    replan: str | None = None
     modes: tuple[str, ...] = ("one_shot", "k_shot", "on_the_fly", "warm_start")
     main_mode: str = "on_the_fly"
 
@@ -122,13 +133,18 @@ class ExperimentSpec:
                            num_train_timesteps=100, checkpoint_every=checkpoint_every,
                            log_every=max(1, min(100, steps // 10)))
 
+    def replan_of(self, mode: str) -> str:
+        """The re-planning trigger of a mode's row: self.replan if set, else the mode's own
+        (paper-style on-the-fly re-plans before every move; warm start on change)."""
+        return self.replan or MODE_REPLAN.get(mode, "always")
+
     def planner_config(self, mode: str, **overrides):
         from diffplan.planner import PlannerConfig
         return PlannerConfig(mode=mode, num_steps=self.num_steps,
                              warm_start_step=self.warm_start_step,
                              warm_num_steps=self.warm_num_steps,
-                             fresh_noise=self.fresh_noise, eta=self.eta, replan=self.replan,
-                             **overrides)
+                             fresh_noise=self.fresh_noise, eta=self.eta,
+                             replan=self.replan_of(mode), **overrides)
 
     @property
     def training_name(self) -> str:
@@ -444,9 +460,10 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--eta", type=float, default=spec.eta,
                    help="sampler stochasticity: 0 = DDIM (default), 1 = DDPM-like")
     p.add_argument("--replan", choices=("always", "on_change"), default=spec.replan,
-                   help="re-planning modes re-plan before every move ('always', the paper; "
-                        "default) or only when new cells were seen or the plan's sub-goal was "
-                        "reached ('on_change')")
+                   help="re-planning trigger of every re-planning row: before every move "
+                        "('always', the paper) or only when new cells were seen or the plan's "
+                        "sub-goal was reached ('on_change'); default: each row's own, "
+                        + ", ".join(f"{m} {r}" for m, r in MODE_REPLAN.items()))
     p.add_argument("--batch-size", type=int, default=spec.eval_batch,
                    help=f"episodes per jitted evaluation call (default {spec.eval_batch})")
     p.add_argument("--figures", metavar="DIR",
@@ -669,16 +686,19 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         "warm_num_steps": spec.warm_num_steps or spec.num_steps,
         "noise": "fresh" if spec.fresh_noise else "episode",
         "eta": spec.eta,
-        "replan": spec.replan,
+        "replan": {mode: spec.replan_of(mode) for mode in modes if mode in MODE_REPLAN},
         "trajectories_method": METHOD_NAMES[main_mode],
         "train_seconds": train_seconds,
         "machine": f"{os.cpu_count()} CPU cores, jax {jax.__version__} on "
                    f"{jax.devices()[0].platform}",
         "rows": rows,
     }
+    triggers = "; ".join(f"{METHOD_NAMES[m]} re-plans {TRIGGER_WORDS[r]}"
+                         for m, r in result["replan"].items())
     print(f"\n{spec.name}: {args.episodes} episodes per seed, seed(s) "
-          f"{','.join(map(str, seeds))}, {spec.num_steps} denoising steps per plan, checkpoint "
-          f"{result['checkpoint']}")
+          f"{','.join(map(str, seeds))}, {spec.num_steps} denoising steps per plan (warm start: "
+          f"{result['warm_num_steps']}-step schedule from step {spec.warm_start_step}), "
+          f"checkpoint {result['checkpoint']}" + (f"\n{triggers}" if triggers else ""))
     print(format_table(rows))
     if len(seeds) > 1:
         print(format_intervals(rows, seeds))

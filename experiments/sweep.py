@@ -7,9 +7,11 @@ over all its episodes, sharded across every JAX device.
 
 A configuration holds the experiment CLIs' flags, with underscores: setting, checkpoint,
 modes (one planning mode), num_steps, eta, warm_start_step, warm_num_steps, noise ("fresh" |
-"episode"), replan ("always" | "on_change"), seed, episodes, batch_size (slots per device of
-the re-planning modes' pool). ``--config FILE`` reads a JSON list of such objects (missing keys
-take the defaults below); on the command line, comma-separated values give every combination.
+"episode"), replan ("always" | "on_change"; missing: the mode's own, as in the experiment
+CLIs: on_the_fly "always", warm_start "on_change"), seed, episodes, batch_size (slots per
+device of the re-planning modes' pool). ``--config FILE`` reads a JSON list of such objects
+(missing keys take the experiment CLIs' defaults, listed below); on the command line,
+comma-separated values give every combination.
 
 Each configuration runs as one call of a jitted function over all its episodes: the
 re-planning modes on a pool of slots per device (diffplan.rollout_stream), the others as one
@@ -42,10 +44,14 @@ import numpy as np
 from experiments import cli
 from experiments import compile_common as cc
 
-DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly", "num_steps": 10,
-            "eta": 0.0, "warm_start_step": 1, "warm_num_steps": 3, "noise": "fresh",
-            "replan": "always", "seed": cc.DEFAULT_EVAL_SEED, "episodes": 1000,
-            "batch_size": 250}
+_SPEC = cc.SPECS["p_mo2g"]
+DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly",
+            "num_steps": _SPEC.num_steps, "eta": _SPEC.eta,
+            "warm_start_step": _SPEC.warm_start_step,
+            "warm_num_steps": _SPEC.warm_num_steps or _SPEC.num_steps,
+            "noise": "fresh" if _SPEC.fresh_noise else "episode", "replan": None,
+            "seed": cc.DEFAULT_EVAL_SEED, "episodes": 1000, "batch_size": _SPEC.eval_batch}
+"""The experiment CLIs' defaults (replan None: the mode's own trigger, cc.MODE_REPLAN)."""
 TYPES = {"setting": str, "checkpoint": str, "modes": str, "num_steps": int, "eta": float,
          "warm_start_step": int, "warm_num_steps": int, "noise": str, "replan": str,
          "seed": int, "episodes": int, "batch_size": int}
@@ -68,7 +74,7 @@ def normalise(raw: dict, index: int) -> dict:
     config = dict(DEFAULTS, **raw)
     for key, kind in TYPES.items():
         value = config[key]
-        if value is None and key == "checkpoint":
+        if value is None and key in ("checkpoint", "replan"):
             continue
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
@@ -77,6 +83,8 @@ def normalise(raw: dict, index: int) -> dict:
                              f"{value!r}")
         config[key] = value
     for key, allowed in CHOICES.items():
+        if config[key] is None and key == "replan":
+            continue
         if config[key] not in allowed:
             raise SweepError(f"configuration {index}: {key} must be one of {allowed}, got "
                              f"{config[key]!r}")
@@ -84,6 +92,8 @@ def normalise(raw: dict, index: int) -> dict:
     if config["modes"] not in MODES:
         raise SweepError(f"configuration {index}: modes must be one planning mode of {MODES}, "
                          f"got {config['modes']!r}")
+    if config["replan"] is None:
+        config["replan"] = cc.SPECS[config["setting"]].replan_of(config["modes"])
     for key, minimum in (("episodes", 1), ("batch_size", 1), ("seed", 0), ("num_steps", 1),
                          ("warm_num_steps", 1), ("warm_start_step", 0)):
         if config[key] < minimum:
@@ -197,8 +207,8 @@ class Runner:
         cache_key = (task, planner.config, padded, slots, config["modes"],
                      jax.tree.structure(planner_placed),
                      tuple((x.shape, str(x.dtype)) for x in jax.tree.leaves(planner_placed)))
-        bar = tqdm(total=n, desc=f"[{index + 1}] {config['modes']} {config['num_steps']} "
-                                 f"steps seed {seed}", unit="ep", disable=not self.progress,
+        bar = tqdm(total=n, desc=f"[{index + 1}] {label(config)} seed {seed}", unit="ep",
+                   disable=not self.progress,
                    file=sys.stderr, leave=True, dynamic_ncols=True)
         token = RELAY.attach(bar)
         try:
@@ -263,6 +273,9 @@ def label(row) -> str:
 
 
 def write_figures(out_dir: str, rows) -> list[str]:
+    """Two PNGs (x: denoiser calls per episode, then evaluation seconds), each with two panels:
+    SR and path F1 against the cost, every configuration labelled, the Pareto front drawn
+    (when every SR ties, as on P-MO2G, the path F1 panel still separates the modes)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -274,21 +287,27 @@ def write_figures(out_dir: str, rows) -> list[str]:
                                  ("seconds", "seconds (evaluation, no compilation)",
                                   "pareto_seconds.png")):
         xs = [r[x_key] for r in rows]
-        ys = [r["SR"] for r in rows]
-        fig, ax = plt.subplots(figsize=(6.4, 4.4))
-        ax.scatter(xs, ys, color="#3060c0", zorder=3)
-        for r, x, y in zip(rows, xs, ys):
-            ax.annotate(label(r), (x, y), fontsize=6.5, xytext=(3, 3),
-                        textcoords="offset points")
-        front = pareto_front(xs, ys)
-        ax.plot([xs[i] for i in front], [ys[i] for i in front], color="#d04020", zorder=2,
-                label="Pareto front")
-        ax.set_xscale("log")
-        ax.set_xlabel(x_label)
-        ax.set_ylabel("SR (%)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        ax.set_title("success against cost", fontsize=10)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+        for ax, (y_key, y_label) in zip(axes, (("SR", "SR (%)"), ("path_f1", "path F1 (%)"))):
+            ys = [r[y_key] for r in rows]
+            ax.scatter(xs, ys, color="#3060c0", zorder=3)
+            order = sorted(range(len(rows)), key=lambda i: xs[i])
+            for rank, i in enumerate(order):  # alternate label offsets: fewer overlaps
+                ax.annotate(label(rows[i]), (xs[i], ys[i]), fontsize=6.5,
+                            xytext=(3, 4 if rank % 2 == 0 else -9),
+                            textcoords="offset points")
+            front = pareto_front(xs, ys)
+            ax.plot([xs[i] for i in front], [ys[i] for i in front], color="#d04020",
+                    zorder=2, marker="o", markerfacecolor="none", label="Pareto front")
+            ax.set_xscale("log")
+            ax.set_xlabel(x_label)
+            ax.set_ylabel(y_label)
+            lo, hi = min(ys), max(ys)
+            pad = max(0.5, 0.1 * (hi - lo))
+            ax.set_ylim(lo - pad, hi + pad)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8, loc="lower right")
+        fig.suptitle(f"success against cost ({len(rows)} configurations)", fontsize=10)
         fig.tight_layout()
         path = os.path.join(out_dir, name)
         fig.savefig(path, dpi=110)
@@ -378,10 +397,7 @@ def main(argv=None) -> dict:
                          f"{jax.devices()[0].platform}", "rows": rows}
     print(format_rows(rows))
     if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
-        print(f"wrote {args.json}")
+        cli.write_json(args.json, result)
     if args.csv:
         write_csv(args.csv, rows)
         print(f"wrote {args.csv}")

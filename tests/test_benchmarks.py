@@ -1,10 +1,14 @@
 """The grid-world benchmark end to end on a tiny configuration (its numbers are not checked:
 speed lives in the benchmark's output, never in tests), and that it times what it says."""
 import json
+import os
 
 import numpy as np
+import pytest
 
 from experiments import bench_gridworld
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_bench_gridworld_tiny_run_writes_every_row(tmp_path):
@@ -59,11 +63,33 @@ def test_bench_planner_tiny_run(tmp_path):
 
     out = tmp_path / "planner.json"
     assert bench_planner.main(["--batch-sizes", "2", "--num-steps", "2", "--eager-full", "2",
-                               "--json", str(out)]) == 0
+                               "--eager-forward", "jit", "--json", str(out)]) == 0
     data = json.loads(out.read_text())
-    assert [(r["method"], r["batch"]) for r in data["rows"]] == [("jitted", 2), ("eager", 2)]
+    assert [(r["method"], r["batch"]) for r in data["rows"]] == [
+        ("jitted", 2), ("bound", 2), ("eager-jit", 2)]
     assert all(r["episodes_per_second"] > 0 for r in data["rows"])
-    assert data["rows"][0]["speedup"] > 0
+    jitted, bound, eager = data["rows"]
+    assert eager["speedup"] == pytest.approx(
+        jitted["episodes_per_second"] / eager["episodes_per_second"])
+    assert jitted["of_bound"] == pytest.approx(
+        jitted["episodes_per_second"] / bound["episodes_per_second"])
+
+
+def test_eager_variants_run_the_same_moves_and_calls():
+    """The op-by-op eager loop (no jax.jit) and the compiled-forward one do the same work:
+    one move of 2 episodes, 2 denoising steps each."""
+    from diffplan import load_denoiser
+    from experiments import bench_planner
+    from experiments.compile_common import SPECS, eval_episodes
+
+    den = load_denoiser(os.path.join(REPO, "checkpoints", "compile_gridworld"))
+    config = SPECS["p_mo2g"].grid_config()
+    episodes = eval_episodes(config, 2, 3000)
+    works = [bench_planner.eager_rollout(den, config, episodes, 2, 1, 0, forward)[1:3]
+             for forward in ("jit", "op")]
+    assert works[0] == works[1] == (2, 4)
+    with pytest.raises(ValueError, match="forward must be one of"):
+        bench_planner.eager_rollout(den, config, episodes, 2, 1, 0, "torch")
 
 
 def test_bench_train_tiny_run(tmp_path):
@@ -86,9 +112,10 @@ def test_bench_train_stops_at_target(tmp_path):
 
     result = bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
                                "--max-steps", "6", "--episodes", "2", "--model-size", "tiny",
-                               "--target", "0", "--stop-at-target", "--no-progress"])
+                               "--target", "0", "--target-metric", "SR_ordered",
+                               "--stop-at-target", "--no-progress"])
     assert [r["step"] for r in result["rows"]] == [2]
-    assert result["reached"]["step"] == 2
+    assert result["reached"]["step"] == 2 and result["target_metric"] == "SR_ordered"
 
 
 def test_bench_release_says_how_to_get_torch_when_absent(monkeypatch, capsys):

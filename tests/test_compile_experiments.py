@@ -36,6 +36,9 @@ def test_json_contract(tiny_run):
     methods = [row["method"] for row in data["rows"]]
     assert methods == ["one-shot", "two-shot", "on-the-fly", "warm-start on-the-fly"]
     assert data["trajectories_method"] == "on-the-fly"
+    # Each re-planning row's trigger: paper-style on-the-fly before every move, warm start on
+    # change (the cheap default).
+    assert data["replan"] == {"on_the_fly": "always", "warm_start": "on_change"}
     for row in data["rows"]:
         assert EXPECTED_ROW_FIELDS <= set(row), EXPECTED_ROW_FIELDS - set(row)
         assert 0.0 <= row["SR"] <= 100.0

@@ -81,6 +81,15 @@ def test_shipped_sweep_file_is_valid():
         sweep.normalise(c, i)
 
 
+@pytest.mark.parametrize("mode", ["on_the_fly", "warm_start", "k_shot"])
+def test_missing_keys_take_the_experiment_clis_defaults(mode):
+    """A configuration of a mode alone plans as the experiment CLI's row of that mode does
+    (warm start: its cheap schedule, re-planning on change; on-the-fly: before every move)."""
+    config = sweep.normalise({"modes": mode}, 0)
+    assert sweep.planner_config(config) == cc.SPECS["p_mo2g"].planner_config(mode)
+    assert config["replan"] == cc.SPECS["p_mo2g"].replan_of(mode)
+
+
 def test_two_devices_give_the_single_device_episodes(tiny_checkpoint, tmp_path):
     """The same sweep with 2 host devices (XLA_FLAGS) writes the same trajectories."""
     outs = {}
