@@ -163,8 +163,9 @@ def eager_rollout(denoiser, config, episodes, num_steps: int, max_moves: int | N
     rng = np.random.default_rng(seed)
     # Warm up the forward at the first move's shape outside the timed region (compilation of
     # the "jit" variant, per-op dispatch caches of "op"): an eager framework pays neither.
-    warm = np.zeros((n,) + worlds[0].condition().shape[:-1]
-                    + (worlds[0].condition().shape[-1] + denoiser.num_gen_channels,), np.float32)
+    cond_shape = worlds[0].condition().shape
+    warm = np.zeros((n,) + cond_shape[:-1] + (cond_shape[-1] + denoiser.num_gen_channels,),
+                    np.float32)
     jax.block_until_ready(forward(denoiser.params, warm, np.zeros(n, np.int32), tokens))
     start, moves, calls = time.perf_counter(), 0, 0
     for move in range(config.max_steps if max_moves is None else max_moves):
@@ -207,12 +208,13 @@ def jitted_rollout(planner, task, episodes, keys, chunk=None):
     return compile_s, time.perf_counter() - t0, out
 
 
-def forward_calls_per_second(denoiser, batch: int, repeats: int = 5) -> float:
-    """Denoiser calls/s of the bare jitted UNet forward at this batch (median of repeats)."""
+def forward_calls_per_second(denoiser, plan_shape, batch: int, repeats: int = 5) -> float:
+    """Denoiser calls/s of the bare jitted UNet forward at this batch on plans of plan_shape
+    (H, W, G) (median of repeats)."""
     from diffplan.planner import MIN_SUB_BATCH
 
     b = max(batch, MIN_SUB_BATCH)
-    h = w = 16
+    h, w = plan_shape[:2]
     x = jnp.zeros((b, h, w, denoiser.num_cond_channels + denoiser.num_gen_channels))
     t = jnp.full((b,), denoiser.schedule.num_train_steps // 2, jnp.int32)
     tokens = jnp.zeros((b, denoiser.model_config.max_tokens), jnp.int32)
@@ -272,6 +274,7 @@ def build_parser():
 def main(argv=None) -> int:
     from diffplan import Planner, PlannerConfig, load_denoiser
     from diffplan.jax_cache import enable_compilation_cache
+    from diffplan.rollouts import default_chunk
     from experiments import cli
     from experiments.compile_common import ROLLOUT_STREAM, SPECS, eval_episodes
 
@@ -318,9 +321,8 @@ def main(argv=None) -> int:
                    "mean_moves": float(steps.mean()), "max_moves": int(steps.max()),
                    "calls_per_episode": calls / b,
                    "success": float(np.mean(np.asarray(out.final_state.success)))}
-        from diffplan.rollouts import default_chunk
         sub_batch = min(b, args.chunk or default_chunk(b))
-        bound_cps = forward_calls_per_second(den, sub_batch)
+        bound_cps = forward_calls_per_second(den, planner.plan_shape, sub_batch)
         bound_row = {"method": "bound", "batch": b, "calls_per_second": bound_cps,
                      "episodes_per_second": bound_cps / (calls / b),
                      "note": f"bare jitted forward at batch {sub_batch}, "
