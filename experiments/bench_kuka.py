@@ -179,11 +179,12 @@ def main(argv=None) -> int:
     import jax
     import mujoco
 
-    from envs.kuka import env, tasks
+    from envs.kuka import env
+    from envs.kuka.config import COLUMNS
     from experiments.kuka_common import generate_episodes, write_json
 
     episodes = args.episodes or max(args.batch_sizes + [args.placement_batch])
-    eps = generate_episodes(tasks.COLUMNS["stacking_multi"], episodes, args.seed, episodes)
+    eps = generate_episodes(COLUMNS["stacking_multi"], episodes, args.seed, episodes)
     states = env.reset_batch(eps)
     rows = bench_mjx(states, args.batch_sizes, args.steps, args.repeats)
     rows.append(bench_c(states, args.c_steps, args.repeats))

@@ -339,7 +339,7 @@ def format_intervals(rows, seeds) -> str:
 
 
 def metrics_row(method, rollout, episodes, seconds, has_reference):
-    from diffplan.metrics import plan_metrics, trajectory_metrics
+    from envs.gridworld.metrics import plan_metrics, trajectory_metrics
 
     row = {"method": method}
     row.update(trajectory_metrics(rollout.positions, rollout.steps, episodes.target,

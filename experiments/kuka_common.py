@@ -8,7 +8,7 @@ of the kind's single- and multi-constraint tasks under MJX physics, measure succ
 physical block poses, print a table and write JSON (contract 2 of DESIGN.md), the final states
 (contract 4), figures and videos.
 
-Seeds: episode i of ``--seed S`` is ``tasks.generate(fold_in(PRNGKey(S), i), spec)`` in every
+Seeds: episode i of ``--seed S`` is ``generate(fold_in(PRNGKey(S), i), spec)`` in every
 column (so the columns share their initial layouts); the planner's key of episode i is
 ``fold_in(fold_in(PRNGKey(S), ROLLOUT_STREAM), i)``, so nothing depends on the batching.
 Every choice (model, training, psi, step counts) was made on the validation seed 1000; the
@@ -254,19 +254,21 @@ def _generate_fn():
     for every column and seed)."""
     import jax
 
-    from envs.kuka import tasks
+    from envs.kuka.config import TaskSpec
+    from envs.kuka.episode import episode_keys, generate
 
-    return jax.jit(jax.vmap(tasks.generate, in_axes=(0, None)), static_argnums=1)
+    return jax.jit(jax.vmap(generate, in_axes=(0, None)), static_argnums=1)
 
 
 def generate_episodes(spec, n: int, seed: int, batch: int):
     """Episodes 0..n-1 of a seed (numpy Episode with a leading (n,) axis)."""
     import jax
 
-    from envs.kuka import tasks
+    from envs.kuka.config import TaskSpec
+    from envs.kuka.episode import episode_keys, generate
 
     gen = _generate_fn()
-    parts = [jax.device_get(gen(tasks.episode_keys(seed, min(batch, n - lo), lo), spec))
+    parts = [jax.device_get(gen(episode_keys(seed, min(batch, n - lo), lo), spec))
              for lo in range(0, n, batch)]
     return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
 
@@ -356,13 +358,13 @@ def constraint_success(episodes, final):
     rows False), by contract 4's check and by Diffuser's."""
     import jax
 
-    from envs.kuka import success
+    from envs.kuka import metrics
 
     pos, held = final["block_pos"], final["held"]
     constraints = np.asarray(episodes.constraints)
     out = []
-    for check in (success.on_matrix, success.diffuser_on_matrix):
-        out.append(np.asarray(jax.vmap(lambda p, h, c: success.satisfied(check(p, h), c))(
+    for check in (metrics.on_matrix, metrics.diffuser_on_matrix):
+        out.append(np.asarray(jax.vmap(lambda p, h, c: metrics.satisfied(check(p, h), c))(
             pos, held, constraints)))
     return out[0], out[1]
 
@@ -371,11 +373,11 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
     """A results row from the final physical states (numpy)."""
     import jax
 
-    from envs.kuka import success
+    from envs.kuka import metrics
 
     strict, loose = constraint_success(episodes, final)
     valid = np.asarray(episodes.constraints)[..., 0] >= 0
-    tower = np.asarray(jax.vmap(success.single_tower)(final["block_pos"], final["held"]))
+    tower = np.asarray(jax.vmap(metrics.single_tower)(final["block_pos"], final["held"]))
     is_stacking = bool(np.asarray(episodes.tower).all())
     row = {
         "method": method, "column": column, "episodes": int(len(valid)),
@@ -511,7 +513,8 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     import jax
     from tqdm import tqdm
 
-    from envs.kuka import tasks
+    from envs.kuka.config import TaskSpec
+    from envs.kuka.episode import episode_keys, generate
 
     progress = not args.no_progress
     planner_policy = args.policy == "planner"
@@ -539,7 +542,7 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
         modes = (None,)
 
     languages = LANGUAGES if args.language == "both" else (args.language,)
-    specs = [tasks.TaskSpec(kind, multi, language) for language in languages
+    specs = [TaskSpec(kind, multi, language) for language in languages
              for multi in (False, True)]
     episodes = {(spec, seed): generate_episodes(spec, args.episodes, seed, args.batch_size)
                 for spec in specs for seed in seeds}

@@ -20,9 +20,10 @@ BATCH = 4
 
 @functools.lru_cache(maxsize=None)
 def _generator():
-    from envs.kuka import tasks
+    from envs.kuka.config import COLUMNS
+    from envs.kuka.episode import episode_keys, generate
 
-    return jax.jit(jax.vmap(tasks.generate, in_axes=(0, None)), static_argnums=1)
+    return jax.jit(jax.vmap(generate, in_axes=(0, None)), static_argnums=1)
 
 
 @functools.lru_cache(maxsize=32)
@@ -30,10 +31,11 @@ def episodes(column: str, seed: int, language: str = "canonical"):
     """BATCH episodes (numpy Episode) of a Table 2 column: episodes 0..BATCH-1 of seed."""
     import dataclasses
 
-    from envs.kuka import tasks
+    from envs.kuka.config import COLUMNS
+    from envs.kuka.episode import episode_keys, generate
 
-    spec = dataclasses.replace(tasks.COLUMNS[column], language=language)
-    return jax.device_get(_generator()(tasks.episode_keys(seed, BATCH), spec))
+    spec = dataclasses.replace(COLUMNS[column], language=language)
+    return jax.device_get(_generator()(episode_keys(seed, BATCH), spec))
 
 
 @functools.lru_cache(maxsize=32)

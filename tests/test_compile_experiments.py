@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from diffplan import metrics
+from envs.gridworld import metrics
 from experiments import compile_common as cc
 
 EXPECTED_ROW_FIELDS = {"method", "SR", "GD", "path_precision", "path_recall", "path_f1",

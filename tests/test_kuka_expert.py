@@ -6,15 +6,16 @@ import numpy as np
 import pytest
 
 import kuka_fixtures as kf
-from envs.kuka import env, expert, grid, physics, tasks
+from envs.kuka import env, expert, grid, physics
+from envs.kuka.config import COLUMNS, MAX_RELATIONS, MAX_STEPS
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 
 
-@pytest.mark.parametrize("column", list(tasks.COLUMNS))
+@pytest.mark.parametrize("column", list(COLUMNS))
 def test_expert_satisfies_every_instructed_constraint(column):
     """Checked with the plain-numpy contract-4 check on the final physical poses."""
-    spec = tasks.COLUMNS[column]
+    spec = COLUMNS[column]
     episodes = kf.episodes(column, 11)
     final, frames = kf.expert_run(column, 11)
     pos = np.asarray(jax.vmap(physics.block_pos)(final.data))
@@ -28,7 +29,7 @@ def test_expert_satisfies_every_instructed_constraint(column):
     needed = 3 if spec.kind == "stacking" else spec.num_constraints
     np.testing.assert_array_equal(final.t, needed)
     assert final.done.all() and not held.any()
-    assert frames.shape[:2] == (kf.BATCH, tasks.MAX_STEPS)
+    assert frames.shape[:2] == (kf.BATCH, MAX_STEPS)
 
 
 def test_planned_poses_are_where_physics_puts_the_blocks():
@@ -76,7 +77,7 @@ def test_expert_targets_on_the_grid():
 def test_expert_after_the_end_reports_every_relation_done():
     final, _ = kf.expert_run("rearrangement_single", 11)
     steps = jax.vmap(expert.next_step)(final)
-    np.testing.assert_array_equal(np.asarray(steps.relation), tasks.MAX_RELATIONS)
+    np.testing.assert_array_equal(np.asarray(steps.relation), MAX_RELATIONS)
     # A done state does not change when stepped.
     again = env.step_batch(final, steps.action)
     np.testing.assert_array_equal(np.asarray(again.data.qpos), np.asarray(final.data.qpos))

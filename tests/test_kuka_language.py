@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from diffplan import language
-from envs.kuka import grammar, scene, tasks
+from envs.kuka import grammar, scene
+from envs.kuka.config import COLUMNS
+from envs.kuka.episode import episode_keys, generate
 
 
 def test_fill_slots_and_concat_segments_match_python():
@@ -100,8 +102,8 @@ def test_instruction_tokens_match_rendering(paraphrased):
 
 def test_episode_instructions_state_their_constraints():
     """Canonical instructions of generated episodes render from the episode's constraints."""
-    for spec in tasks.COLUMNS.values():
-        eps = jax.vmap(lambda k: tasks.generate(k, spec))(tasks.episode_keys(5, 8))
+    for spec in COLUMNS.values():
+        eps = jax.vmap(lambda k: generate(k, spec))(episode_keys(5, 8))
         for c, tok, tower in zip(np.asarray(eps.constraints), np.asarray(eps.tokens),
                                  np.asarray(eps.tower)):
             tower_sentence = bool(tower) and not spec.multi

@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from envs.kuka import env, physics, scene, tasks
+from envs.kuka import env, physics, scene
+from envs.kuka.episode import MIN_GAP, sample_layout
 import kuka_fixtures as kf
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
@@ -43,7 +44,7 @@ def test_four_block_tower_stands_five_seconds():
     assert float(final.time[0]) > 4.99
 
 
-_layouts = jax.jit(jax.vmap(tasks.sample_layout))
+_layouts = jax.jit(jax.vmap(sample_layout))
 
 
 @settings(max_examples=8, deadline=None)
@@ -54,7 +55,7 @@ def test_reset_never_overlaps_blocks(seed):
     xy = np.asarray(_layouts(jax.random.split(jax.random.PRNGKey(seed), 256)))
     np.testing.assert_allclose(np.linalg.norm(xy, axis=-1), scene.BLOCK_RADIUS, atol=1e-5)
     sep = np.abs(xy[:, :, None] - xy[:, None]).max(-1) + 10 * np.eye(4)
-    assert sep.min() >= 2 * scene.BLOCK_HALF_SIZE[0] + tasks.MIN_GAP - 1e-6
+    assert sep.min() >= 2 * scene.BLOCK_HALF_SIZE[0] + MIN_GAP - 1e-6
 
 
 def test_reset_rests_flat_without_contact_between_blocks():

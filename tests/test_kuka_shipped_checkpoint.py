@@ -11,7 +11,7 @@ import pytest
 
 import kuka_fixtures as kf
 from diffplan.planner import Planner, PlannerConfig
-from envs.kuka import tasks
+from envs.kuka.config import COLUMNS
 from envs.kuka.task import KukaTask
 from experiments import kuka_common as kc
 
@@ -53,7 +53,7 @@ def test_on_the_fly_strict_sr_on_fresh_episodes(denoiser):
     planner = Planner(denoiser, PlannerConfig(mode="on_the_fly", num_steps=kc.NUM_STEPS))
     task = KukaTask()
     held, total = 0, 0
-    for spec in tasks.COLUMNS.values():
+    for spec in COLUMNS.values():
         episodes = kc.generate_episodes(spec, EPISODES, SEED, kf.BATCH)
         final = kc.run_planner(task, planner, episodes, SEED, kf.BATCH)
         strict, _ = kc.constraint_success(episodes, final)

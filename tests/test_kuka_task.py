@@ -14,7 +14,9 @@ import pytest
 import diffplan
 import kuka_fixtures as kf
 from diffplan.denoiser import LoadedDenoiser
-from envs.kuka import env, expert, grid, physics, primitive, success, tasks, training
+from envs.kuka import env, expert, grid, physics, primitive, metrics, training
+from envs.kuka.config import COLUMNS
+from envs.kuka.episode import Episode
 from envs.kuka import task as ktask
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
@@ -125,7 +127,7 @@ def test_planner_goal_build_orders():
     def goal(constraints, tower):
         c = np.full((3, 2), -1, np.int32)
         c[:len(constraints)] = constraints
-        ep = tasks.Episode(block_xy=np.zeros((4, 2), np.float32), constraints=c,
+        ep = Episode(block_xy=np.zeros((4, 2), np.float32), constraints=c,
                            goal=c, tower=np.bool_(tower), max_steps=np.int32(6),
                            tokens=np.zeros(40, np.int32))
         return np.asarray(training.planner_goal(ep)).tolist()
@@ -203,7 +205,7 @@ def oracle_run():
     return task, result
 
 
-@pytest.mark.parametrize("column", list(tasks.COLUMNS))
+@pytest.mark.parametrize("column", list(COLUMNS))
 def test_oracle_plans_reach_the_experts_success(oracle_run, column):
     task, result = oracle_run
     eps, out = result(column, 21)
@@ -223,7 +225,7 @@ def test_oracle_plans_reach_the_experts_success(oracle_run, column):
     np.testing.assert_array_equal(out.steps, needed)
     np.testing.assert_array_equal(out.num_plans, out.steps)
     if column.startswith("stacking"):
-        assert np.asarray(jax.vmap(success.single_tower)(pos, held)).all()
+        assert np.asarray(jax.vmap(metrics.single_tower)(pos, held)).all()
     # Positions: the flange over the block placed last.
     last = np.asarray(out.positions)[np.arange(kf.BATCH), out.steps]
     top, _ = jax.vmap(grid.top_down_view)(pos, np.asarray(jax.vmap(physics.block_quat)(

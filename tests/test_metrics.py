@@ -1,8 +1,8 @@
-"""diffplan.metrics against hand-computed cases."""
+"""envs.gridworld.metrics against hand-computed cases."""
 import numpy as np
 import pytest
 
-from diffplan import metrics
+from envs.gridworld import metrics
 
 
 def _path_mask(cells, size=4):

@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from diffplan.metrics import trajectory_metrics
+from envs.gridworld.metrics import trajectory_metrics
 from experiments import compile_common as cc
 
 CHECKPOINT = os.path.join(cc.CHECKPOINT_ROOT, cc.TRAINING_NAME)

@@ -47,7 +47,7 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
         assert len(list(csv.DictReader(f))) == 4
     assert sorted(os.listdir(tmp_path / "figs")) == ["pareto_calls.png", "pareto_seconds.png"]
     # Each row is what its trajectories say.
-    from diffplan import metrics
+    from envs.gridworld import metrics
     traj = np.load(tmp_path / "traj" / "config_001.npz")
     m = metrics.trajectory_metrics(traj["positions"], traj["steps"], traj["target"],
                                    traj["expert_path"], traj["reference"])

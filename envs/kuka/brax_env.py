@@ -24,10 +24,12 @@ import jax.numpy as jnp
 from brax.envs.base import Env
 from brax.envs.base import State as BraxState
 
-from envs.kuka import env, grid, physics, scene, tasks
+from envs.kuka import env, grid, physics, scene
+from envs.kuka.config import MAX_RELATIONS, TaskSpec
+from envs.kuka.episode import generate
 
 NAME = "kuka_blocks"
-OBSERVATION_SIZE = 4 * 3 + 4 * 4 + tasks.MAX_RELATIONS * 2 * scene.NUM_BLOCKS + 1
+OBSERVATION_SIZE = 4 * 3 + 4 * 4 + MAX_RELATIONS * 2 * scene.NUM_BLOCKS + 1
 
 
 def action_to_cells(action) -> jax.Array:
@@ -48,7 +50,7 @@ class KukaBlocks(Env):
     def __init__(self, kind: str = "stacking", multi: bool = True,
                  language: str = "canonical", **kwargs):
         del kwargs  # brax passes backend etc.; this env always runs MJX
-        self._spec = tasks.TaskSpec(kind, multi, language)
+        self._spec = TaskSpec(kind, multi, language)
 
     def _observe(self, state: env.State) -> jax.Array:
         constraints = state.episode.constraints
@@ -63,7 +65,7 @@ class KukaBlocks(Env):
         return env.satisfied(state).sum() / state.episode.num_constraints
 
     def reset(self, rng: jax.Array) -> BraxState:
-        state = env.reset(tasks.generate(rng, self._spec))
+        state = env.reset(generate(rng, self._spec))
         success = self._success(state)
         return BraxState(pipeline_state=state, obs=self._observe(state),
                          reward=jnp.zeros(()), done=jnp.zeros(()),

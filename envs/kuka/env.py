@@ -8,7 +8,7 @@ on the floor at the place cell's centre where no block covers it. The primitive
 (:mod:`envs.kuka.primitive`) carries it around the base along :func:`grid.arc_points`
 (:func:`step_along` takes another path). Every action costs primitive.NUM_STEPS physics steps.
 
-The episode ends when its relations hold (strictly: success.on_matrix; stacking also needs the
+The episode ends when its relations hold (strictly: metrics.on_matrix; stacking also needs the
 four blocks in one tower) or after ``episode.max_steps`` placements; stepping a done state
 changes nothing. Nothing here depends on the task but through the Episode's arrays, so one
 compiled step serves every task. Everything is jit- and vmap-able; one ``mjx.Model``
@@ -22,8 +22,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from envs.kuka import grid, physics, primitive, scene, success, tasks
-from envs.kuka.tasks import Episode, TaskSpec
+from envs.kuka import grid, metrics, physics, primitive, scene
+from envs.kuka.config import TaskSpec
+from envs.kuka.episode import Episode, generate
 
 
 @struct.dataclass
@@ -54,12 +55,12 @@ def reset(episode: Episode) -> State:
 
 def on_matrix(state: State):
     """bool (4, 4) [i, j]: block i is on block j (strict)."""
-    return success.on_matrix(physics.block_pos(state.data), physics.held(state.data))
+    return metrics.on_matrix(physics.block_pos(state.data), physics.held(state.data))
 
 
 def satisfied(state: State):
     """bool (3,): each instructed constraint holds (strict; padding rows False)."""
-    return success.satisfied(on_matrix(state), state.episode.constraints)
+    return metrics.satisfied(on_matrix(state), state.episode.constraints)
 
 
 def goal_reached(state: State):
@@ -68,7 +69,7 @@ def goal_reached(state: State):
     ep = state.episode
     valid = ep.constraints[:, 0] >= 0
     relations = jnp.all(satisfied(state) | ~valid)
-    tower = success.single_tower(physics.block_pos(state.data), physics.held(state.data))
+    tower = metrics.single_tower(physics.block_pos(state.data), physics.held(state.data))
     return relations & (tower | ~ep.tower)
 
 
@@ -152,7 +153,7 @@ class KukaEnv:
         return self.spec.max_steps
 
     def generate(self, key) -> Episode:
-        return tasks.generate(key, self.spec)
+        return generate(key, self.spec)
 
     def reset(self, key) -> State:
         """A fresh episode of the task from key, at t = 0."""

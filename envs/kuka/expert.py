@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from envs.kuka import env, grid, physics, scene, success, tasks
+from envs.kuka import env, grid, physics, scene, metrics
+from envs.kuka.config import MAX_STEPS
 
 
 @struct.dataclass
@@ -41,7 +42,7 @@ def decide(pos, held, episode) -> ExpertStep:
     episode's goal (pure; vmap over episodes)."""
     goal = episode.goal
     valid = goal[:, 0] >= 0
-    on = success.on_matrix(pos, held)
+    on = metrics.on_matrix(pos, held)
     holds = on[jnp.maximum(goal[:, 0], 0), jnp.maximum(goal[:, 1], 0)] | ~valid
     first = jnp.argmin(holds)  # the first relation that does not hold
     relation = jnp.where(holds.all(), goal.shape[0], first)
@@ -84,16 +85,16 @@ def rollout(states):
     """Runs the expert on a batch of states (leading axis B, e.g. env.reset_batch(episodes))
     until every episode is done (each after at most its max_steps placements).
 
-    Returns (final env.State, frames float32 (B, tasks.MAX_STEPS, NUM_FRAMES, nq): placement
+    Returns (final env.State, frames float32 (B, MAX_STEPS, NUM_FRAMES, nq): placement
     k's recorded qpos (env.State.frames) in frames[:, k] for k < final t; the rest is
     unspecified). One compilation serves every task."""
     b = states.t.shape[0]
     frames = jnp.broadcast_to(states.frames[:, None],
-                              (b, tasks.MAX_STEPS) + states.frames.shape[1:])
+                              (b, MAX_STEPS) + states.frames.shape[1:])
 
     def body(carry):
         states, frames = carry
-        index = jnp.minimum(states.t, tasks.MAX_STEPS - 1)
+        index = jnp.minimum(states.t, MAX_STEPS - 1)
         states = jax.vmap(env.step)(states, jax.vmap(act)(states))
         frames = frames.at[jnp.arange(b), index].set(states.frames)
         return states, frames

@@ -44,7 +44,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from envs.kuka import env, grammar, grid, physics, primitive, scene, tasks
+from envs.kuka import env, grammar, grid, physics, primitive, scene
+from envs.kuka.config import MAX_STEPS
+from envs.kuka.episode import Episode
 
 NUM_COND_CHANNELS = 2
 NUM_GEN_CHANNELS = 3
@@ -186,7 +188,7 @@ class KukaTask:
 
     One task serves every Table 2 column: what differs (relations, tower, max placements,
     instruction) is data in the Episode. max_steps is the largest episode length
-    (tasks.MAX_STEPS); each episode ends after its own ``episode.max_steps`` placements.
+    (MAX_STEPS); each episode ends after its own ``episode.max_steps`` placements.
     follow_path: carry blocks along the in-painted path (False: along the expert's arc).
     """
 
@@ -195,24 +197,24 @@ class KukaTask:
     width: int = grid.GRID_SIZE
     num_cond_channels: int = NUM_COND_CHANNELS
     num_gen_channels: int = NUM_GEN_CHANNELS
-    max_steps: int = tasks.MAX_STEPS
+    max_steps: int = MAX_STEPS
 
     def __post_init__(self):
         expected = (grid.GRID_SIZE, grid.GRID_SIZE, NUM_COND_CHANNELS, NUM_GEN_CHANNELS)
         got = (self.height, self.width, self.num_cond_channels, self.num_gen_channels)
         if got != expected:
             raise ValueError(f"the Kuka world plans (H, W, C, G) = {expected}, got {got}")
-        if self.max_steps < tasks.MAX_STEPS:
-            raise ValueError(f"max_steps must be >= {tasks.MAX_STEPS} (the longest episode), "
+        if self.max_steps < MAX_STEPS:
+            raise ValueError(f"max_steps must be >= {MAX_STEPS} (the longest episode), "
                              f"got {self.max_steps}")
 
-    def reset(self, episode: tasks.Episode) -> env.State:
+    def reset(self, episode: Episode) -> env.State:
         return env.reset(episode)
 
     def condition(self, state: env.State):
         return condition_from_view(*env.view(state))
 
-    def tokens(self, episode: tasks.Episode):
+    def tokens(self, episode: Episode):
         return episode.tokens
 
     def psi(self, state: env.State, plan):

@@ -26,12 +26,14 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from envs.kuka import expert, grid, scene, tasks
+from envs.kuka import expert, grid, scene
+from envs.kuka.config import COLUMNS, TaskSpec
+from envs.kuka.episode import Episode, generate
 from envs.kuka.task import NUM_GEN_CHANNELS, condition_from_view
 
 TRAIN_STREAM = 0x6B4B
 SPECS = tuple(dataclasses.replace(spec, language=language)
-              for language in ("canonical", "paraphrased") for spec in tasks.COLUMNS.values())
+              for language in ("canonical", "paraphrased") for spec in COLUMNS.values())
 """The task specs one denoiser is trained on: the four Table 2 columns, canonical and
 paraphrased instructions (Table 5)."""
 PERTURB_XY = 0.006
@@ -40,7 +42,7 @@ PERTURB_YAW = 0.02
 """Standard deviation (rad) of their turn about z (clipped at 2.5x)."""
 
 
-def planner_goal(episode: tasks.Episode):
+def planner_goal(episode: Episode):
     """int32 (3, 2) the relations the training expert builds, in build order (rows of -1
     padding last); see the module docstring."""
     constraints = episode.constraints
@@ -67,7 +69,7 @@ def _yaw_quat(yaw):
                       jnp.sin(yaw / 2)], axis=-1)
 
 
-def plan_example(pos, quat, episode: tasks.Episode):
+def plan_example(pos, quat, episode: Episode):
     """The planning tensor float32 (24, 24, C + G) of block poses (pos float (4, 3), quat
     (4, 4); nothing held): the view's condition channels, then the expert's next pick-and-place
     (``expert.decide`` with :func:`planner_goal`) as signed maps (+1 / -1): path, goal estimate
@@ -80,13 +82,13 @@ def plan_example(pos, quat, episode: tasks.Episode):
                             maps.astype(jnp.float32) * 2 - 1], axis=-1)
 
 
-def training_example(key, spec: tasks.TaskSpec, perturb_prob: float):
+def training_example(key, spec: TaskSpec, perturb_prob: float):
     """One example of a task spec: (x0 float32 (24, 24, C + G), tokens int32 (L,)).
 
     The state: the first k relations of :func:`planner_goal` built (k uniform among those
     still to do), blocks moved so far perturbed with probability ``perturb_prob``."""
     k_episode, k_built, k_perturb, k_xy, k_yaw = jax.random.split(key, 5)
-    episode = tasks.generate(k_episode, spec)
+    episode = generate(k_episode, spec)
     goal = planner_goal(episode)
     count = (goal[:, 0] >= 0).sum()
     built = jax.random.randint(k_built, (), 0, count)

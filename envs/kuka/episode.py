@@ -1,4 +1,4 @@
-"""The Kuka tasks (the four columns of the paper's Table 2) and their episodes.
+"""Episodes of the Kuka tasks (the columns of :mod:`envs.kuka.config`).
 
 Following Diffuser and Decision Diffuser, a task is a set of "X on Y" relations the arm must
 build, and success is the share of instructed relations that hold at the end:
@@ -32,9 +32,8 @@ import numpy as np
 from flax import struct
 
 from envs.kuka import grammar, scene
+from envs.kuka.config import COLUMNS, MAX_RELATIONS, NO_BLOCK, TaskSpec
 
-MAX_RELATIONS = grammar.MAX_RELATIONS
-NO_BLOCK = -1
 MIN_GAP = 0.03
 """Minimum clearance (m) between two blocks' footprints at reset."""
 
@@ -65,50 +64,6 @@ class Episode:
     @property
     def num_constraints(self) -> jax.Array:
         return (self.constraints[..., 0] >= 0).sum(-1)
-
-
-@dataclasses.dataclass(frozen=True)
-class TaskSpec:
-    """A task (hashable; pass as a static argument). kind: "stacking" or "rearrangement";
-    multi: several instructed relations (3 stacking, 2 rearrangement) or one; language:
-    "canonical" or "paraphrased" (grammar.LANGUAGES)."""
-
-    kind: str
-    multi: bool
-    language: str = "canonical"
-
-    def __post_init__(self):
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown task kind {self.kind!r}; expected one of {KINDS}")
-        if self.language not in grammar.LANGUAGES:
-            raise ValueError(f"unknown language {self.language!r}; expected one of "
-                             f"{grammar.LANGUAGES}")
-
-    @property
-    def name(self) -> str:
-        return f"{self.kind}_{'multi' if self.multi else 'single'}"
-
-    @property
-    def num_constraints(self) -> int:
-        if not self.multi:
-            return 1
-        return 3 if self.kind == "stacking" else 2
-
-    @property
-    def max_steps(self) -> int:
-        """Placements allowed: twice what the task needs (3 for a tower, else one per
-        relation), so a planner can correct a mistake."""
-        needed = 3 if self.kind == "stacking" else self.num_constraints
-        return 2 * needed
-
-
-KINDS = ("stacking", "rearrangement")
-MAX_STEPS = 6
-"""The largest max_steps of any task (stacking's)."""
-COLUMNS = {spec.name: spec for spec in (
-    TaskSpec("stacking", False), TaskSpec("rearrangement", False),
-    TaskSpec("stacking", True), TaskSpec("rearrangement", True))}
-"""The four columns of Table 2, by name."""
 
 
 def _pair_table() -> np.ndarray:

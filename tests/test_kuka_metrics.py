@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.kuka import success
+from envs.kuka import metrics
 
 H = 0.03  # half height
 
@@ -18,22 +18,22 @@ def _state(*blocks):
 
 def test_on():
     pos, held = _state((0.6, 0, H), (0.6 + 0.09, 0.0, 3 * H + 0.01))  # 9 cm off, 1 cm high
-    on = np.asarray(success.on_matrix(pos, held))
+    on = np.asarray(metrics.on_matrix(pos, held))
     assert on[1, 0] and not on[0, 1] and on.sum() == 1
-    assert np.asarray(success.diffuser_on_matrix(pos, held))[1, 0]
-    np.testing.assert_array_equal(np.asarray(success.satisfied(on, [[1, 0], [0, 1], [-1, -1]])),
+    assert np.asarray(metrics.diffuser_on_matrix(pos, held))[1, 0]
+    np.testing.assert_array_equal(np.asarray(metrics.satisfied(on, [[1, 0], [0, 1], [-1, -1]])),
                                   [True, False, False])
 
 
 def test_beside_is_not_on():
     # Beside on the floor: neither check.
     pos, held = _state((0.6, 0, H), (0.6, 0.21, H))
-    assert not np.asarray(success.on_matrix(pos, held)).any()
-    assert not np.asarray(success.diffuser_on_matrix(pos, held)).any()
+    assert not np.asarray(metrics.on_matrix(pos, held)).any()
+    assert not np.asarray(metrics.diffuser_on_matrix(pos, held)).any()
     # Half off the lower block (15 cm): not on strictly, on by Diffuser's looser check.
     pos, held = _state((0.6, 0, H), (0.75, 0, 3 * H))
-    assert not np.asarray(success.on_matrix(pos, held))[1, 0]
-    assert np.asarray(success.diffuser_on_matrix(pos, held))[1, 0]
+    assert not np.asarray(metrics.on_matrix(pos, held))[1, 0]
+    assert np.asarray(metrics.diffuser_on_matrix(pos, held))[1, 0]
 
 
 def test_tilted_block_leaning_on_another_is_not_on():
@@ -42,33 +42,33 @@ def test_tilted_block_leaning_on_another_is_not_on():
     angle = np.radians(30)
     lift = 0.1 * np.sin(angle) + H * np.cos(angle)
     pos, held = _state((0.6, 0, H), (0.6 + 0.1 * np.cos(angle), 0, 2 * H + lift))
-    assert not np.asarray(success.on_matrix(pos, held))[1, 0]
-    assert np.asarray(success.diffuser_on_matrix(pos, held))[1, 0]
+    assert not np.asarray(metrics.on_matrix(pos, held))[1, 0]
+    assert np.asarray(metrics.diffuser_on_matrix(pos, held))[1, 0]
     # Slightly tilted (2 degrees): still on.
     angle = np.radians(2)
     lift = 0.1 * np.sin(angle) + H * np.cos(angle)
     pos, held = _state((0.6, 0, H), (0.6, 0, 2 * H + lift))
-    assert np.asarray(success.on_matrix(pos, held))[1, 0]
+    assert np.asarray(metrics.on_matrix(pos, held))[1, 0]
 
 
 def test_held_blocks_are_on_nothing():
     pos, held = _state((0.6, 0, H), (0.6, 0, 3 * H))
     for h in ([False, True, False, False], [True, False, False, False]):
-        assert not np.asarray(success.on_matrix(pos, np.array(h))).any()
-        assert not np.asarray(success.diffuser_on_matrix(pos, np.array(h))).any()
+        assert not np.asarray(metrics.on_matrix(pos, np.array(h))).any()
+        assert not np.asarray(metrics.diffuser_on_matrix(pos, np.array(h))).any()
 
 
 def test_too_high_or_sunk_is_not_on():
     for dz in (0.02, -0.02):
         pos, held = _state((0.6, 0, H), (0.6, 0, 3 * H + dz))
-        assert not np.asarray(success.on_matrix(pos, held))[1, 0]
+        assert not np.asarray(metrics.on_matrix(pos, held))[1, 0]
 
 
 def test_single_tower():
     tower = [(0.6, 0, H + 2 * H * k) for k in range(4)]
     pos, held = _state(*tower)
-    assert bool(success.single_tower(pos, held))
-    assert np.asarray(success.on_floor(pos, held)).tolist() == [True, False, False, False]
+    assert bool(metrics.single_tower(pos, held))
+    assert np.asarray(metrics.on_floor(pos, held)).tolist() == [True, False, False, False]
     two = [(0.6, 0, H), (0.6, 0, 3 * H), (-0.6, 0, H), (-0.6, 0, 3 * H)]
-    assert not bool(success.single_tower(*_state(*two)))
-    assert not bool(success.single_tower(pos, np.array([False, False, False, True])))
+    assert not bool(metrics.single_tower(*_state(*two)))
+    assert not bool(metrics.single_tower(pos, np.array([False, False, False, True])))
