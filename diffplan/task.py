@@ -5,11 +5,12 @@ of pure per-episode functions. Both worlds (the grid world and the Kuka world) i
 """
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import jax
 
 
+@runtime_checkable
 class Task(Protocol):
     """Per-episode pure functions (the planner vmaps them over a batch).
 

@@ -29,7 +29,7 @@ class TaskSpec:
     "canonical" or "paraphrased" (grammar.LANGUAGES)."""
 
     kind: str
-    multi: bool
+    multi: bool = False
     language: str = "canonical"
 
     def __post_init__(self):
