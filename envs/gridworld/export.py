@@ -1,4 +1,4 @@
-"""Episode export (DESIGN.md contract 1): generated episodes as plain numpy arrays / an .npz file.
+"""Episode export (docs/DESIGN.md, contract 1): generated episodes as plain numpy arrays / an .npz file.
 
     python -m envs.gridworld.export --setting p_mo2g --n 2000 --seed 0 --out p_mo2g.npz \
         [--figures figs/ --num-figures 8] [--paraphrase]
@@ -227,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m envs.gridworld.export",
         description=(
-            "Generate grid-world episodes and write them as an .npz file (DESIGN.md contract 1): "
+            "Generate grid-world episodes and write them as an .npz file (docs/DESIGN.md, contract 1): "
             "grid int8 (N,H,W), agent/target/reference int32 (N,2) (reference (-1,-1) where the "
             "setting has none), expert_path bool (N,H,W), expert_length int32 (N,), visible0 bool "
             "(N,H,W), instruction str (N,), object_names str (K,). Episode i is generated from "

@@ -1,6 +1,6 @@
 """Success checkers on physical block poses: the strict one of contract 4 and Diffuser's.
 
-Strict (DESIGN.md, contract 4): "X on Y" holds when their centres' xy distance is under half a
+Strict (docs/DESIGN.md, contract 4): "X on Y" holds when their centres' xy distance is under half a
 block width (0.1 m), X's bottom rests on Y's top within a quarter of a block's height
 (|(z_X - h) - (z_Y + h)| < h / 2 with h the half height 0.03 m, so 0.015 m), and neither is
 held. Bottom and top are those of the block's nominal flat pose about its centre, so a block

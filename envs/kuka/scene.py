@@ -1,6 +1,6 @@
 """The Kuka block world's MJCF scene, written here (no external assets), and its constants.
 
-Geometry follows Diffuser's ``kuka`` block task (DESIGN.md, "Kuka (MJX)"):
+Geometry follows Diffuser's ``kuka`` block task (docs/DESIGN.md, "Kuka world (MJX)"):
 
 * a 7-joint iiwa14-like arm fixed at the origin: link offsets 0.1575, 0.2025, 0.2045, 0.2155,
   0.1845, 0.2155, 0.081 m along each link's z and 0.045 m from joint 7 to the flange (the arm
@@ -21,7 +21,7 @@ Geometry follows Diffuser's ``kuka`` block task (DESIGN.md, "Kuka (MJX)"):
   pose is fixed in the Model: the block's centre half a block height below the flange, the
   block's frame the flange's turned upside down (the flange's z points down when grasping).
 
-Solver settings measured for stable stacks (DESIGN.md): timestep 0.005 s, Newton, 8 iterations,
+Solver settings measured for stable stacks (docs/DESIGN.md): timestep 0.005 s, Newton, 8 iterations,
 8 line-search iterations, pyramidal friction cone, condim 3, friction 0.8, eulerdamp disabled.
 """
 from __future__ import annotations
