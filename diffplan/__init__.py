@@ -3,6 +3,8 @@
 Public entry points (DESIGN.md, contracts 3 and 5):
   ``diffplan.sample``, ``diffplan.cosine_schedule``: the in-painting sampler and its schedule;
   ``diffplan.load_denoiser(dir)``: a trained denoiser (network, params, schedule, target);
+  the network is a registered class (``diffplan.models``), never one imported by the name a
+  checkpoint stores (docs/checkpoints.md);
   ``diffplan.Planner(denoiser, diffplan.PlannerConfig(...))``: pure ``init`` / ``plan`` /
   ``plan_batch`` steps; ``diffplan.rollout``: Algorithm 1 over a batch of episodes of a
   ``diffplan.Task``.

@@ -1,26 +1,35 @@
-"""Orbax checkpoints of diffusion-planner training runs, and loading EMA params for evaluation.
+"""Orbax checkpoints of any training-state pytree, and loading parameters for evaluation.
 
 Layout: a checkpoint directory is an ``orbax.checkpoint.CheckpointManager`` root; each saved
 step is a sub-directory named by the step number, written atomically (orbax writes to a
-temporary directory and renames it on commit) and holding the items
+temporary directory and renames it on commit; then the digest below is written atomically)
+and holding the items
 
-    ema_params/   the EMA parameters (the ``params`` collection of the model), float32
-    train_state/  only in training checkpoints: {"params", "opt_state", "step"}; the optimizer
-                  state is stored as its list of leaves ("000000", "000001", ...) and rebuilt
-                  from the caller's target structure, so any optax state works
-    metadata/     JSON: {"format": ..., "kind": "train" | "eval", "step", "model_config",
+    ema_params/   the evaluation parameters (the EMA of the ``params`` collection for the
+                  denoiser, the network's params for the baselines), as saved
+    train_state/  only in training checkpoints: the whole training state, any pytree, stored as
+                  nested dicts keyed by its key path (``{"params": ..., "opt_state": {"0":
+                  {"mu": ...}}, "step": ...}``) and restored onto the caller's target structure
+    metadata/     JSON: {"format", "kind": "train" | "eval", "step", "model_config",
                   "model_config_class", "model_class", "train_config", "extra",
-                  "input_shapes": {"x": [1, H, W, C+G], "tokens": [1, L]}, ...}
+                  "input_shapes", ...}
+    diffplan_digest.json   SHA-256 of every other file of the step
 
 Other files may live beside the step directories (``metrics.jsonl``, ``tb/``, ``config.json``):
 the manager only looks at numerically named sub-directories. ``export_eval_checkpoint`` writes
-the small kind of checkpoint shipped in the repository (EMA params + metadata only);
-``load_params_for_eval`` reads both kinds.
+the small kind of checkpoint shipped in the repository (evaluation params + metadata only);
+``load_params_for_eval`` reads both kinds. docs/checkpoints.md is the user's guide.
+
+Formats: "diffplan-checkpoint/2" (written now) and "diffplan-checkpoint/1" differ only in the
+layout of ``train_state/``: evaluation parameters of both load; the training state of a
+format-1 checkpoint is refused (it cannot be resumed by this version).
+
+Loading never imports what a checkpoint names: a network is built from the registry of
+``diffplan.models`` or given by the caller (``model=``).
 """
 from __future__ import annotations
 
 import hashlib
-import importlib
 import json
 import logging
 import os
@@ -32,8 +41,11 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from diffplan import models
+
 __all__ = [
     "FORMAT",
+    "READABLE_FORMATS",
     "CorruptCheckpointError",
     "CheckpointWriteError",
     "verify_checkpoint",
@@ -49,14 +61,21 @@ __all__ = [
     "compare_param_shapes",
     "class_path",
     "abstract_params",
+    "state_tree",
 ]
 
-FORMAT = "diffplan-checkpoint/1"
+FORMAT = "diffplan-checkpoint/2"
+READABLE_FORMATS = ("diffplan-checkpoint/1", FORMAT)
+"""Format 1 stored the training state as {"params", "opt_state": its leaves, "step"}."""
 MAX_TO_KEEP = 2
 DIGEST_FILE = "diffplan_digest.json"
 """SHA-256 of every file of a saved step, written (atomically) once orbax has committed the
 step; loading verifies it, so a truncated or altered file is reported instead of loading
-silently wrong values (orbax alone does not notice a flipped byte in an array)."""
+silently wrong values (orbax alone does not notice a flipped byte in an array). It shows
+integrity, not origin: see docs/checkpoints.md."""
+EVAL_ITEM, STATE_ITEM, META_ITEM = "ema_params", "train_state", "metadata"
+
+class_path = models.class_path
 
 
 class CorruptCheckpointError(ValueError):
@@ -68,20 +87,6 @@ class CheckpointWriteError(OSError):
 
 
 # --------------------------------------------------------------------------- small helpers
-
-def class_path(obj_or_cls: Any) -> str:
-    """``"module:QualName"`` of a class (or of an instance's class)."""
-    cls = obj_or_cls if isinstance(obj_or_cls, type) else type(obj_or_cls)
-    return f"{cls.__module__}:{cls.__qualname__}"
-
-
-def _import_path(path: str) -> Any:
-    module, _, qual = path.partition(":")
-    obj = importlib.import_module(module)
-    for part in qual.split("."):
-        obj = getattr(obj, part)
-    return obj
-
 
 def _json_normalise(value: Any) -> Any:
     """JSON round trip: tuples become lists, keys strings (what a stored config looks like)."""
@@ -123,6 +128,7 @@ def diff_dicts(stored: Any, requested: Any, prefix: str = "") -> list[str]:
     if stored != requested:
         return [f"{prefix or '<value>'}: stored {stored!r}, requested {requested!r}"]
     return []
+
 
 
 class _ReadOnlyNotices(logging.Filter):
@@ -228,8 +234,46 @@ def _resolve_step(directory: str, step: Optional[int]) -> int:
     return int(step)
 
 
-def _flatten_opt_state(opt_state: Any) -> dict:
-    return {f"{i:06d}": leaf for i, leaf in enumerate(jax.tree_util.tree_leaves(opt_state))}
+
+# --------------------------------------------------------------------------- pytree layout
+
+def _key_name(entry: Any) -> str:
+    for attr in ("key", "name", "idx"):  # DictKey / FlattenedIndexKey, GetAttrKey, SequenceKey
+        if hasattr(entry, attr):
+            return str(getattr(entry, attr))
+    return str(entry)
+
+
+def _leaf_paths(tree: Any) -> tuple[list[tuple[str, ...]], list[Any], Any]:
+    """(path of every leaf as a tuple of names, the leaves, the tree's structure)."""
+    with_path, treedef = jax.tree_util.tree_flatten_with_path(tree)
+    paths = [tuple(_key_name(k) for k in path) or ("value",) for path, _ in with_path]
+    return paths, [leaf for _, leaf in with_path], treedef
+
+
+def state_tree(tree: Any) -> dict:
+    """A pytree as nested dicts keyed by the names of its key path (how ``train_state/`` is
+    stored): a ``TrainState`` becomes ``{"params": {...}, "ema_params": {...}, "opt_state":
+    {"0": {"count": ..., "mu": {...}, ...}, ...}, "step": ...}``. Raises ValueError when two
+    leaves would get the same path (e.g. a dict with keys 1 and "1")."""
+    paths, leaves, _ = _leaf_paths(tree)
+    out: dict = {}
+    for path, leaf in zip(paths, leaves):
+        node = out
+        for name in path[:-1]:
+            node = node.setdefault(name, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"state entry {'/'.join(path)} collides with a leaf")
+        if path[-1] in node:
+            raise ValueError(f"two leaves of the state are both stored as {'/'.join(path)}")
+        node[path[-1]] = leaf
+    return out
+
+
+def _get_path(tree: Mapping, path: tuple[str, ...]) -> Any:
+    for name in path:
+        tree = tree[name]
+    return tree
 
 
 def _path_shapes(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
@@ -269,54 +313,48 @@ def _abstract_like(tree: Any, default_sharding) -> Any:
     """ShapeDtypeStruct tree of ``tree`` keeping each leaf's sharding when it has one."""
     def to_sds(x):
         sharding = getattr(x, "sharding", None) or default_sharding
-        return jax.ShapeDtypeStruct(tuple(x.shape), x.dtype, sharding=sharding)
+        return jax.ShapeDtypeStruct(tuple(np.shape(x)), np.dtype(x.dtype), sharding=sharding)
     return jax.tree_util.tree_map(to_sds, tree)
+
+
+def _host(tree: Any) -> Any:
+    """Host (numpy) copies: the arrays are small and replicated, and numpy arrays avoid
+    orbax's replica-parallel slicing of multi-device arrays, which breaks with jax 0.6.2
+    (orbax 0.12.8 uses ``jax.sharding.set_mesh`` as a context manager)."""
+    return jax.tree_util.tree_map(np.asarray, jax.device_get(tree))
 
 
 # --------------------------------------------------------------------------- save / load
 
-def save_checkpoint(directory: str, step: int, state: Any, metadata: Mapping[str, Any], *,
-                    max_to_keep: Optional[int] = MAX_TO_KEEP) -> str:
+def save_checkpoint(directory: str, step: int, params: Any, metadata: Mapping[str, Any], *,
+                    train_state: Any = None, max_to_keep: Optional[int] = MAX_TO_KEEP) -> str:
     """Atomically writes checkpoint ``step`` into ``directory``; keeps the newest ``max_to_keep``.
 
     Args:
       directory: the checkpoint root (created if missing).
       step: the step number (a new one: saving an existing step raises ValueError).
-      state: a ``diffplan.train.TrainState`` (a training checkpoint: params, EMA params,
-        optimizer state, step) or any other pytree, taken as the EMA parameters alone (an
-        evaluation checkpoint).
+      params: the evaluation parameters (any pytree of arrays; what
+        ``load_params_for_eval`` returns).
       metadata: JSON-serialisable dict (configs etc.); ``format``, ``kind`` and ``step`` are
         added.
+      train_state: the whole training state to resume from (any pytree of arrays; restored
+        with ``load_checkpoint(target=...)``), or None for an evaluation checkpoint.
+      max_to_keep: older steps beyond this many are deleted (None: keep all).
 
     Returns:
       The path of the step directory.
     """
-    from diffplan.train import TrainState  # local import: train imports this module
-
     step = int(step)
     if step < 0:
         raise ValueError(f"step must be >= 0, got {step}")
     meta = dict(_json_normalise(dict(metadata)))
-    # Host copies: the arrays are small and replicated, and numpy arrays avoid orbax's
-    # replica-parallel slicing of multi-device arrays, which breaks with jax 0.6.2
-    # (orbax 0.12.8 uses ``jax.sharding.set_mesh`` as a context manager).
-    state = jax.device_get(state)
-    if isinstance(state, TrainState):
-        items = {
-            "ema_params": ocp.args.StandardSave(state.ema_params),
-            "train_state": ocp.args.StandardSave({
-                "params": state.params,
-                "opt_state": _flatten_opt_state(state.opt_state),
-                "step": np.asarray(state.step, np.int32),
-            }),
-        }
-        meta["kind"] = "train"
-    else:
-        items = {"ema_params": ocp.args.StandardSave(state)}
-        meta["kind"] = "eval"
+    items = {EVAL_ITEM: ocp.args.StandardSave(_host(params))}
+    if train_state is not None:
+        items[STATE_ITEM] = ocp.args.StandardSave(state_tree(_host(train_state)))
+    meta["kind"] = "eval" if train_state is None else "train"
     meta["format"] = FORMAT
     meta["step"] = step
-    items["metadata"] = ocp.args.JsonSave(meta)
+    items[META_ITEM] = ocp.args.JsonSave(meta)
     with _manager(directory, max_to_keep=max_to_keep) as m:
         if step in m.all_steps():
             raise ValueError(f"checkpoint step {step} already exists in {directory!r}")
@@ -354,30 +392,63 @@ def _remove_partial(directory: str, step: int, patience: float = 5.0) -> None:
         time.sleep(0.1)
 
 
-def _restore(manager, directory: str, step: int, args):
-    """manager.restore, with orbax's and tensorstore's read errors as CorruptCheckpointError."""
-    try:
-        return manager.restore(step, args=args)
-    except Exception as e:  # noqa: BLE001 - orbax/tensorstore raise many kinds
-        raise CorruptCheckpointError(
-            f"checkpoint {directory!r} step {step} cannot be read ({type(e).__name__}: "
-            f"{str(e).splitlines()[0][:160] if str(e) else ''})") from e
-
-
 def read_metadata(directory: str, step: Optional[int] = None) -> dict:
-    """The JSON metadata of checkpoint ``step`` (default: the latest)."""
+    """The JSON metadata of checkpoint ``step`` (default: the latest), after verifying the
+    step's digest. Raises ValueError for a format this version cannot read."""
     step = verify_checkpoint(directory, step)
     try:
         with _manager(directory, read_only=True) as m:
-            out = m.restore(step, args=ocp.args.Composite(metadata=ocp.args.JsonRestore()))
+            out = m.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))
     except Exception as e:  # noqa: BLE001 - orbax/tensorstore raise many kinds
         raise CorruptCheckpointError(f"checkpoint {directory!r} step {step}: its metadata "
                                      f"cannot be read ({type(e).__name__})") from e
-    meta = dict(out.get("metadata") or {})
-    if meta.get("format") != FORMAT:
+    meta = dict(out.get(META_ITEM) or {})
+    if meta.get("format") not in READABLE_FORMATS:
         raise ValueError(f"checkpoint {directory!r} step {step} has format "
-                         f"{meta.get('format')!r}, expected {FORMAT!r}")
+                         f"{meta.get('format')!r}, expected one of {READABLE_FORMATS}")
     return meta
+
+
+def _restore(directory: str, step: int, targets: Mapping[str, Any], sharding) -> dict:
+    """The items ``targets`` names (item -> ShapeDtypeStruct tree, or None: as stored) of
+    checkpoint ``step``; orbax's and tensorstore's read errors as CorruptCheckpointError."""
+    with _manager(directory, read_only=True) as m:
+        try:
+            item_meta = m.item_metadata(step)
+        except Exception as e:  # noqa: BLE001
+            raise CorruptCheckpointError(f"checkpoint {directory!r} step {step}: its array "
+                                         f"metadata cannot be read ({type(e).__name__})") from e
+        args = {name: ocp.args.StandardRestore(
+                    _abstract_from_metadata(item_meta[name], sharding) if target is None
+                    else target)
+                for name, target in targets.items()}
+        try:
+            return m.restore(step, args=ocp.args.Composite(**args))
+        except Exception as e:  # noqa: BLE001 - orbax/tensorstore raise many kinds
+            raise CorruptCheckpointError(
+                f"checkpoint {directory!r} step {step} cannot be read ({type(e).__name__}: "
+                f"{str(e).splitlines()[0][:160] if str(e) else ''})") from e
+
+
+def _stored_shapes(directory: str, step: int, item: str) -> Any:
+    with _manager(directory, read_only=True) as m:
+        try:
+            meta = m.item_metadata(step)[item]
+        except Exception as e:  # noqa: BLE001
+            raise CorruptCheckpointError(f"checkpoint {directory!r} step {step}: its array "
+                                         f"metadata cannot be read ({type(e).__name__})") from e
+    return getattr(meta, "tree", meta)
+
+
+def _check_train_state(directory: str, metadata: Mapping[str, Any]) -> None:
+    step = metadata["step"]
+    if metadata.get("kind") != "train":
+        raise ValueError(f"checkpoint {directory!r} step {step} is an evaluation checkpoint "
+                         "(evaluation params only) and holds no training state to resume from")
+    if metadata.get("format") != FORMAT:
+        raise ValueError(f"checkpoint {directory!r} step {step} holds a training state in the "
+                         f"older layout of {metadata.get('format')!r}, which this version "
+                         "cannot resume (its evaluation params still load); start a new run")
 
 
 def load_checkpoint(directory: str, step: Optional[int] = None, *, target: Any = None,
@@ -385,144 +456,98 @@ def load_checkpoint(directory: str, step: Optional[int] = None, *, target: Any =
     """Loads checkpoint ``step`` (default: the latest) from ``directory``.
 
     Args:
-      directory: a checkpoint root written by ``save_checkpoint`` / ``train``.
+      directory: a checkpoint root written by ``save_checkpoint``.
       step: which step; None for the latest.
-      target: None, or a ``TrainState`` whose leaves are arrays or ``jax.ShapeDtypeStruct``
-        (e.g. ``jax.eval_shape`` of the initial state), giving the structure of the optimizer
-        state and where to place the arrays (each leaf's ``sharding``; else ``sharding``).
+      target: None, or a pytree of the training state's structure whose leaves are arrays
+        or ``jax.ShapeDtypeStruct`` (e.g. ``jax.eval_shape`` of the initial state), giving
+        the structure, shapes and where to place the arrays (each leaf's ``sharding``; else
+        ``sharding``).
       sharding: placement for leaves without one (default: the first device).
 
     Returns:
-      (state, metadata). With a target: a ``TrainState``. Without: a dict
-      ``{"ema_params": ..., "train_state": {"params", "opt_state" (list of leaves), "step"}}``
-      (``train_state`` only for training checkpoints).
+      (state, metadata). With a target: the training state, of the target's structure.
+      Without: a dict ``{"ema_params": ..., "train_state": nested dicts (see
+      ``state_tree``)}`` (``train_state`` only for training checkpoints).
 
     Raises:
       FileNotFoundError: no such checkpoint.
-      ValueError: a target is given but the checkpoint holds no training state, or the shapes
-        of the stored arrays differ from the target's (the mismatching entries are named).
+      ValueError: a target is given but the checkpoint holds no training state (or one of an
+        older format), or the stored arrays differ from the target's (the mismatching entries
+        are named).
     """
-    from diffplan.train import TrainState
-
     step = _resolve_step(directory, step)
     sharding = sharding or jax.sharding.SingleDeviceSharding(jax.devices()[0])
     metadata = read_metadata(directory, step)  # verifies the digest
-    with _manager(directory, read_only=True) as m:
-        try:
-            item_meta = m.item_metadata(step)
-        except Exception as e:  # noqa: BLE001
-            raise CorruptCheckpointError(f"checkpoint {directory!r} step {step}: its array "
-                                         f"metadata cannot be read ({type(e).__name__})") from e
-        has_train = metadata.get("kind") == "train"
-        if target is None:
-            items = {"ema_params": ocp.args.StandardRestore(
-                _abstract_from_metadata(item_meta["ema_params"], sharding))}
-            if has_train:
-                items["train_state"] = ocp.args.StandardRestore(
-                    _abstract_from_metadata(item_meta["train_state"], sharding))
-            out = _restore(m, directory, step, ocp.args.Composite(**items))
-            result = {"ema_params": out["ema_params"]}
-            if has_train:
-                ts = dict(out["train_state"])
-                ts["opt_state"] = [ts["opt_state"][k] for k in sorted(ts["opt_state"])]
-                result["train_state"] = ts
-            return result, metadata
+    if target is None:
+        names = [EVAL_ITEM]
+        if metadata.get("kind") == "train":
+            _check_train_state(directory, metadata)
+            names.append(STATE_ITEM)
+        out = _restore(directory, step, {name: None for name in names}, sharding)
+        return {name: out[name] for name in names}, metadata
 
-        if not isinstance(target, TrainState):
-            raise ValueError(f"target must be a TrainState (or None), got {type(target).__name__}")
-        if not has_train:
-            raise ValueError(f"checkpoint {directory!r} step {step} is an evaluation checkpoint "
-                             "(EMA params only) and holds no optimizer state to resume from")
-        abstract = _abstract_like(target, sharding)
-        opt_leaves, opt_def = jax.tree_util.tree_flatten(abstract.opt_state)
-        ts_target = {"params": abstract.params, "opt_state": _flatten_opt_state(opt_leaves),
-                     "step": jax.ShapeDtypeStruct((), jnp.int32, sharding=abstract.step.sharding)}
-        stored_ts = getattr(item_meta["train_state"], "tree", item_meta["train_state"])
-        stored_ema = getattr(item_meta["ema_params"], "tree", item_meta["ema_params"])
-        problems = (compare_param_shapes(stored_ts["params"], ts_target["params"])
-                    + compare_param_shapes(stored_ema, abstract.ema_params, "EMA parameter")
-                    + compare_param_shapes(stored_ts["opt_state"], ts_target["opt_state"],
-                                           "optimizer-state leaf"))
-        if problems:
-            raise ValueError(f"checkpoint {directory!r} step {step} does not match the target "
-                             "state: " + "; ".join(problems))
-        out = _restore(m, directory, step, ocp.args.Composite(
-            ema_params=ocp.args.StandardRestore(abstract.ema_params),
-            train_state=ocp.args.StandardRestore(ts_target)))
-    ts = out["train_state"]
-    opt_state = jax.tree_util.tree_unflatten(
-        opt_def, [ts["opt_state"][k] for k in sorted(ts["opt_state"])])
-    state = TrainState(params=ts["params"], ema_params=out["ema_params"], opt_state=opt_state,
-                       step=ts["step"])
-    return state, metadata
+    _check_train_state(directory, metadata)
+    abstract = _abstract_like(target, sharding)
+    paths, leaves, treedef = _leaf_paths(abstract)
+    nested = state_tree(abstract)
+    problems = compare_param_shapes(_stored_shapes(directory, step, STATE_ITEM), nested,
+                                    "state entry")
+    if problems:
+        raise ValueError(f"checkpoint {directory!r} step {step} does not match the target "
+                         "state: " + "; ".join(problems))
+    out = _restore(directory, step, {STATE_ITEM: nested}, sharding)[STATE_ITEM]
+    return jax.tree_util.tree_unflatten(treedef, [_get_path(out, p) for p in paths]), metadata
 
 
 # --------------------------------------------------------------------------- evaluation
 
-def _build_model(metadata: dict, config: Any):
-    """Instantiates the stored model class with ``config`` (object or dict)."""
-    try:
-        model_cls = _import_path(metadata["model_class"])
-    except Exception as e:  # noqa: BLE001 - report any import problem the same way
-        raise ValueError(f"cannot import the checkpoint's model class "
-                         f"{metadata.get('model_class')!r} ({e}); pass model=...") from e
-    if isinstance(config, Mapping):
-        try:
-            cfg_cls = _import_path(metadata["model_config_class"])
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"cannot import the checkpoint's model config class "
-                             f"{metadata.get('model_config_class')!r} ({e}); pass the config "
-                             "object or model=...") from e
-        config = cfg_cls.from_dict(dict(config))
-    return model_cls(config)
-
-
 def abstract_params(model, input_shapes: Mapping[str, Any]) -> Any:
-    """``jax.eval_shape`` of ``model.init(...)["params"]`` for the given input shapes."""
-    x_shape = tuple(input_shapes["x"])
-    tok_shape = tuple(input_shapes["tokens"])
+    """``jax.eval_shape`` of ``model.init(...)["params"]`` for the stored input shapes (the
+    inputs of the model's registered spec, ``diffplan.models.example_inputs``)."""
+    inputs = models.example_inputs(model, input_shapes)
 
     def init():
-        x = jnp.zeros(x_shape, jnp.float32)
-        t = jnp.zeros(x_shape[:1], jnp.int32)
-        tok = jnp.zeros(tok_shape, jnp.int32)
-        return model.init(jax.random.PRNGKey(0), x, t, tok)["params"]
+        return model.init(jax.random.PRNGKey(0),
+                          *(jnp.zeros(a.shape, a.dtype) for a in inputs))["params"]
 
     return jax.eval_shape(init)
 
 
 def load_params_for_eval(directory: str, model_config_expected: Any = None, *, model=None,
                          step: Optional[int] = None, sharding=None) -> tuple[Any, dict]:
-    """The EMA parameters and metadata of a training or evaluation checkpoint.
+    """The evaluation parameters and metadata of a training or evaluation checkpoint.
 
     Args:
       directory: a checkpoint root (a training ``out_dir`` or an exported one).
       model_config_expected: optional model config (object with ``to_dict()`` or dict). If
         given, the stored model config must equal it, and the stored parameter shapes must
-        equal those of an abstract init (``jax.eval_shape``) of the model built from it.
-      model: optional flax module to check the parameter shapes against (default: the stored
-        model class instantiated with ``model_config_expected``).
+        equal those of an abstract init (``jax.eval_shape``) of the network built from it:
+        the registered network the checkpoint names (``diffplan.models``; any other is
+        refused before anything is imported), unless ``model`` is given.
+      model: optional flax module to check the parameter shapes against.
       step: which checkpoint (default: the latest).
       sharding: where to place the arrays (default: the first device).
 
     Returns:
-      (ema_params, metadata): the ``params`` collection (use as ``{"params": ema_params}``).
+      (params, metadata): the ``params`` collection (use as ``{"params": params}``).
 
     Raises:
       FileNotFoundError: no checkpoint in ``directory``.
       ValueError: the stored model config or parameter shapes differ (the differences are
-        named in the message).
+        named in the message), or the checkpoint names an unregistered network.
     """
-    raw, metadata = load_checkpoint(directory, step, sharding=sharding)
-    params = raw["ema_params"]
+    step = _resolve_step(directory, step)
+    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    metadata = read_metadata(directory, step)  # verifies the digest
     if model_config_expected is not None:
         diffs = diff_dicts(metadata.get("model_config", {}),
                            config_to_dict(model_config_expected))
         if diffs:
             raise ValueError(f"model config mismatch for checkpoint {directory!r} "
-                             f"(step {metadata['step']}): " + "; ".join(diffs))
-    if model is None and model_config_expected is not None:
-        model = _build_model(metadata, model_config_expected)
+                             f"(step {step}): " + "; ".join(diffs))
+        if model is None:
+            model = models.build_model(metadata, model_config_expected)
+    params = _restore(directory, step, {EVAL_ITEM: None}, sharding)[EVAL_ITEM]
     if model is not None:
         if "input_shapes" not in metadata:
             raise ValueError(f"checkpoint {directory!r} metadata has no input_shapes; cannot "
@@ -531,13 +556,14 @@ def load_params_for_eval(directory: str, model_config_expected: Any = None, *, m
         problems = compare_param_shapes(params, expected)
         if problems:
             raise ValueError(f"parameter shape mismatch for checkpoint {directory!r} "
-                             f"(step {metadata['step']}): " + "; ".join(problems))
+                             f"(step {step}): " + "; ".join(problems))
     return params, metadata
 
 
 def export_eval_checkpoint(train_dir: str, out_dir: str, *, step: Optional[int] = None,
                            overwrite: bool = False) -> str:
-    """Writes the EMA params + metadata of a training checkpoint as a small eval checkpoint.
+    """Writes the evaluation params + metadata of a training checkpoint as a small eval
+    checkpoint (float arrays as float32).
 
     Args:
       train_dir: a training checkpoint root.

@@ -28,6 +28,7 @@ import numpy as np
 import flax.linen as nn
 from flax import struct
 
+from diffplan import models
 from diffplan.schedule import Schedule
 from diffplan.text_encoder import TextEncoder
 from diffplan.unet import UNet, fast_init
@@ -345,20 +346,27 @@ class LoadedDenoiser(struct.PyTreeNode):
 
 def load_denoiser(directory: str, step: int | None = None) -> LoadedDenoiser:
     """The trained denoiser of a checkpoint directory (a training run's or a shipped one):
-    its network, EMA parameters, schedule (the cosine schedule of the checkpoint's
-    ``train_config.num_train_timesteps``, as ``diffplan.train`` trains), prediction target and
-    plan shape (from the stored input shapes).
+    its network, evaluation (EMA) parameters, schedule (the cosine schedule of the
+    checkpoint's ``train_config.num_train_timesteps``, as ``diffplan.train`` trains),
+    prediction target and plan shape (from the stored input shapes).
+
+    The network is the registered class the checkpoint names (``diffplan.models``), which must
+    be a Denoiser; nothing the checkpoint names is imported.
 
     Raises FileNotFoundError (no checkpoint there) or ValueError (unreadable metadata, or a
-    model that is not a diffplan Denoiser)."""
+    network that is not a registered diffplan Denoiser)."""
     from diffplan.checkpoint import latest_step, load_params_for_eval
     from diffplan.schedule import cosine_schedule
 
     if latest_step(directory) is None:
         raise FileNotFoundError(f"no checkpoint in {directory!r}")
-    params, metadata = load_params_for_eval(directory, step=step)
+    params, metadata = load_params_for_eval(directory, step=step)  # arrays and JSON only
+    spec = models.spec_for_metadata(metadata)
+    if not issubclass(spec.model_cls, Denoiser):
+        raise ValueError(f"checkpoint {directory!r} holds a {spec.key!r} network, not a "
+                         "diffplan Denoiser")
     try:
-        config = DenoiserConfig.from_dict(metadata["model_config"])
+        config = spec.config_from_dict(metadata["model_config"])
         train_config = metadata.get("train_config", {})
         h, w, cg = metadata["input_shapes"]["x"][1:]
     except (KeyError, TypeError, ValueError) as e:
@@ -367,7 +375,10 @@ def load_denoiser(directory: str, step: int | None = None) -> LoadedDenoiser:
     return LoadedDenoiser(
         params=params, schedule=cosine_schedule(int(train_config.get("num_train_timesteps",
                                                                      100))),
-        apply_fn=ModuleApply(Denoiser(config)),
+        apply_fn=ModuleApply(spec.model_cls(config)),
         prediction=train_config.get("prediction", "eps"),
         plan_shape=(int(h), int(w), int(cg) - config.num_cond_channels),
         num_cond_channels=config.num_cond_channels, model_config=config)
+
+
+models.register_model("diffplan.denoiser:Denoiser", Denoiser, DenoiserConfig)

@@ -64,7 +64,7 @@ def metadata(model):
 @pytest.fixture(scope="module")
 def train_dir(tmp_path_factory, state, metadata):
     d = str(tmp_path_factory.mktemp("ckpt"))
-    ckpt.save_checkpoint(d, 5, state, metadata)
+    ckpt.save_checkpoint(d, 5, state.ema_params, metadata, train_state=state)
     return d
 
 
@@ -81,10 +81,13 @@ def test_train_checkpoint_round_trip(train_dir, state, model):
     assert int(restored.step) == 5
     assert meta["kind"] == "train" and meta["step"] == 5 and meta["extra"] == {"task": "toy"}
     assert meta["model_class"].endswith(":TinyDenoiser")
-    # Without a target: plain dicts.
+    assert meta["format"] == ckpt.FORMAT
+    # Without a target: plain dicts, the state's entries named by their key paths.
     raw, _ = ckpt.load_checkpoint(train_dir, 5)
     assert_trees_equal(raw["ema_params"], state.ema_params)
-    assert_trees_equal(raw["train_state"]["opt_state"], jax.tree_util.tree_leaves(state.opt_state))
+    assert sorted(raw["train_state"]) == ["ema_params", "opt_state", "params", "step"]
+    assert_trees_equal(raw["train_state"]["params"], state.params)
+    assert_trees_equal(raw["train_state"], ckpt.state_tree(state))
     assert int(raw["train_state"]["step"]) == 5
 
 
@@ -92,11 +95,11 @@ def test_keeps_latest_two_and_refuses_to_overwrite(tmp_path, state, metadata):
     d = str(tmp_path / "keep")
     assert ckpt.latest_step(d) is None
     for s in (1, 2, 3):
-        ckpt.save_checkpoint(d, s, state, metadata)
+        ckpt.save_checkpoint(d, s, state.ema_params, metadata, train_state=state)
     assert ckpt.all_steps(d) == [2, 3]
     assert not any(n.startswith("1") for n in os.listdir(d))
     with pytest.raises(ValueError, match="already exists"):
-        ckpt.save_checkpoint(d, 3, state, metadata)
+        ckpt.save_checkpoint(d, 3, state.ema_params, metadata, train_state=state)
     with pytest.raises(FileNotFoundError, match="step 7"):
         ckpt.load_checkpoint(d, 7)
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
@@ -118,7 +121,7 @@ def test_mismatched_config_or_shapes_raise_value_error(train_dir, state, model):
         ckpt.load_params_for_eval(train_dir, model=wide)
     # Resuming into a differently shaped state is refused the same way.
     target = jax.eval_shape(lambda: init_train_state(wide, CFG, SHAPES))
-    with pytest.raises(ValueError, match=r"does not match the target state.*Conv_0"):
+    with pytest.raises(ValueError, match=r"does not match the target state.*Conv_0.*kernel"):
         ckpt.load_checkpoint(train_dir, target=target)
 
 
@@ -183,3 +186,109 @@ def test_real_denoiser_checkpoint(tmp_path):
         ckpt.load_params_for_eval(d, dataclasses.replace(mc, widths=(8, 32)))
     with pytest.raises(ValueError, match="parameter shape mismatch"):
         ckpt.load_params_for_eval(d, model=den.Denoiser(dataclasses.replace(mc, embed_dim=16)))
+
+
+# ------------------------------------------------------------------------------- any pytree
+
+@jax.tree_util.register_pytree_with_keys_class
+class _Twice:
+    """A pytree node whose two children have the same key name."""
+
+    def __init__(self, a, b):
+        self.a, self.b = a, b
+
+    def tree_flatten_with_keys(self):
+        key = jax.tree_util.DictKey("x")
+        return ((key, self.a), (key, self.b)), None
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(*children)
+
+
+def test_any_pytree_state_round_trips_onto_its_target(tmp_path):
+    """The training state need not be a TrainState: dicts, tuples, named tuples and None
+    leaves (empty subtrees) restore onto the caller's target structure."""
+    import collections
+
+    Moments = collections.namedtuple("Moments", "mu nu")
+    state = {"net": {"w": np.arange(6, dtype=np.float32).reshape(2, 3)},
+             "opt": (Moments(np.ones(3, np.float32), np.full(3, 2.0, np.float32)), None, ()),
+             "count": np.int32(7)}
+    d = str(tmp_path / "tree")
+    ckpt.save_checkpoint(d, 7, {"w": state["net"]["w"]}, {"note": "tree"}, train_state=state)
+    restored, meta = ckpt.load_checkpoint(d, target=jax.eval_shape(lambda: state))
+    assert jax.tree_util.tree_structure(restored) == jax.tree_util.tree_structure(state)
+    assert_trees_equal(restored, state)
+    assert meta["kind"] == "train" and meta["note"] == "tree"
+    raw, _ = ckpt.load_checkpoint(d)
+    assert sorted(raw["train_state"]) == ["count", "net", "opt"]
+    np.testing.assert_array_equal(raw["train_state"]["opt"]["0"]["nu"], state["opt"][0].nu)
+    # Another structure is refused, naming the entry.
+    other = dict(state, net={"w": np.zeros((3, 3), np.float32)})
+    with pytest.raises(ValueError, match=r"does not match the target state.*net.*w.*\(2, 3\)"):
+        ckpt.load_checkpoint(d, target=other)
+
+
+def test_state_tree_names_leaves_by_path_and_refuses_collisions():
+    tree = {"a": [np.zeros(2), {"b": np.ones(1)}], "c": np.int32(1)}
+    nested = ckpt.state_tree(tree)
+    assert sorted(nested) == ["a", "c"] and sorted(nested["a"]) == ["0", "1"]
+    assert nested["a"]["1"]["b"] is tree["a"][1]["b"]
+    with pytest.raises(ValueError, match="both stored as twice/x"):
+        ckpt.state_tree({"twice": _Twice(np.zeros(1), np.ones(1))})
+
+
+def test_training_state_of_the_older_format_is_refused_in_one_line(tmp_path, state, metadata,
+                                                                   monkeypatch, model):
+    d = str(tmp_path / "old")
+    monkeypatch.setattr(ckpt, "FORMAT", "diffplan-checkpoint/1")
+    ckpt.save_checkpoint(d, 5, state.ema_params, metadata, train_state=state)
+    monkeypatch.undo()
+    assert ckpt.read_metadata(d)["format"] == "diffplan-checkpoint/1"
+    target = jax.eval_shape(lambda: init_train_state(model, CFG, SHAPES))
+    for call in (lambda: ckpt.load_checkpoint(d, target=target), lambda: ckpt.load_checkpoint(d)):
+        with pytest.raises(ValueError, match="older layout") as info:
+            call()
+        assert "\n" not in str(info.value)
+    params, _ = ckpt.load_params_for_eval(d)  # its evaluation params still load
+    assert_trees_equal(params, state.ema_params)
+
+
+SHIPPED_PARAMS_SHA256 = {
+    # SHA-256 over (key path, dtype, shape, bytes) of every array load_params_for_eval returns,
+    # measured with the loader before the checkpoint code became generic over pytrees.
+    "compile_gridworld": "a62f871aa2bee5477173f1480ab581680bc6a417f01af9ebc9e9744db7627d8e",
+    "kuka": "f6d5bf148b8ec4c17b0ade4fa540bdc324ccc6d51ab65a7a2c56539a2e89776d",
+    "baselines/bc": "7acbd79d6c5d12b9b3498706bd42d5c454085dcd28e0f72714ab064e289c5da2",
+    "baselines/cql": "000052dbdf6b97d44d4070c41040b5895af4ae5035e82a092869d1ed85b56e76",
+    "baselines/dd/diffusion": "58c3dd84d47decea6ec0cd8cd447e88147c27b912ce675de2d851a93d862e46e",
+    "baselines/dd/inverse_dynamics":
+        "d9655b85d5336134d4268407a54a07b7e925c24f5331bcbb37e5aa4225d6277f",
+}
+
+
+def _tree_sha256(tree):
+    import hashlib
+
+    h = hashlib.sha256()
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+        a = np.asarray(leaf)
+        for part in (jax.tree_util.keystr(path), str(a.dtype), str(a.shape)):
+            h.update(part.encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize("rel", sorted(SHIPPED_PARAMS_SHA256))
+def test_shipped_checkpoints_verify_and_load_bit_identically(rel):
+    import diffplan
+
+    directory = os.path.join(REPO, "checkpoints", rel)
+    step = ckpt.verify_checkpoint(directory)
+    params, meta = ckpt.load_params_for_eval(directory)
+    assert meta["kind"] == "eval" and meta["step"] == step
+    assert _tree_sha256(params) == SHIPPED_PARAMS_SHA256[rel]
+    if meta["model_class"] == "diffplan.denoiser:Denoiser":
+        assert _tree_sha256(diffplan.load_denoiser(directory).params) == \
+            SHIPPED_PARAMS_SHA256[rel]

@@ -213,3 +213,17 @@ def test_bad_inputs_raise(model_vars):
         run(jnp.zeros((2, 8, 8, 5)), jnp.zeros((2,), jnp.int32), TOKENS[:1])
     with pytest.raises(ValueError, match="t must have shape"):
         run(jnp.zeros((1, 8, 8, 5)), jnp.zeros((2,), jnp.int32), TOKENS[:1])
+
+
+def test_the_denoiser_is_registered_under_its_class_path():
+    """Checkpoints name the network by class_path; loading finds it in diffplan.models."""
+    from diffplan import models
+
+    spec = models.lookup(models.class_path(Denoiser))
+    assert spec.key == "diffplan.denoiser:Denoiser" and spec.model_cls is Denoiser
+    assert spec.config_cls is DenoiserConfig
+    assert spec.config_key == "diffplan.denoiser:DenoiserConfig"
+    shapes = {"x": [2, 16, 16, 7], "tokens": [2, 5]}
+    x, t, tokens = spec.inputs(shapes)
+    assert (x.shape, t.shape, tokens.shape) == ((2, 16, 16, 7), (2,), (2, 5))
+    assert (x.dtype, t.dtype, tokens.dtype) == (jnp.float32, jnp.int32, jnp.int32)

@@ -280,3 +280,107 @@ def test_x0_prediction_targets_the_clean_generated_channels():
     assert float(loss_eps) > 0.1
     with pytest.raises(ValueError, match="prediction"):
         TrainConfig(prediction="v")
+
+
+# ------------------------------------------------------------------------------- the one loop
+
+def _quadratic_run():
+    """A state of one vector pulled towards a random target each step (fast to compile)."""
+    from diffplan.train import TrainState
+
+    def init_fn():
+        w = jnp.ones(3, jnp.float32)
+        return TrainState(params={"w": w}, ema_params={"w": w}, opt_state=(),
+                          step=jnp.zeros((), jnp.int32))
+
+    def step_fn(state, key, data):
+        target = jax.random.normal(key, (3,)) * data
+        w = state.params["w"] - 0.1 * (state.params["w"] - target)
+        loss = jnp.mean((w - target) ** 2)
+        return (TrainState(params={"w": w}, ema_params={"w": 0.5 * w}, opt_state=(),
+                           step=state.step + 1), {"loss": loss, "w0": w[0]})
+
+    return init_fn, step_fn
+
+
+def test_fit_runs_any_state_logs_checkpoints_and_resumes_bit_exactly(tmp_path):
+    import shutil
+
+    from diffplan.train import fit, mean_metrics, run_metadata
+
+    init_fn, step_fn = _quadratic_run()
+    meta = run_metadata(None, {"size": 3}, {"lr": 0.1, "log_every": 2}, {"w": [3]},
+                        {"run": "quadratic"})
+    assert meta["model_config_class"] is None and meta["model_class"] == "builtins:NoneType"
+    kw = dict(steps=10, seed=4, metadata=meta, data=jnp.float32(1.0), checkpoint_every=4,
+              log_every=2, progress=False)
+    out = str(tmp_path / "fit")
+    kw.update(validate=lambda s: {"val": float(s.params["w"].sum())}, validate_every=5)
+    calls = []
+    res = fit(step_fn, init_fn, out_dir=out, callback=lambda s, r: calls.append(s), **kw)
+    recs = read_metrics(out)
+    assert [r["step"] for r in recs] == [2, 4, 5, 6, 8, 10] and calls == [2, 4, 5, 6, 8, 10]
+    assert [r["step"] for r in recs if "val" in r] == [5, 10]
+    assert set(recs[0]) == {"step", "loss", "w0", "steps_per_sec", "wall_time"}
+    assert res.last_record == recs[-1] and int(res.state.step) == 10 and res.wall_time > 0
+    assert ckpt.all_steps(out) == [8, 10]
+    with open(os.path.join(out, "config.json")) as f:
+        assert json.load(f) == meta
+    params, stored = ckpt.load_params_for_eval(out)  # the state's ema_params
+    np.testing.assert_array_equal(params["w"], 0.5 * np.asarray(res.state.params["w"]))
+    assert stored["last_loss"] == recs[-1]["loss"]
+    # Keys are step_key(seed, i): the same run by hand gives the same state.
+    state = init_fn()
+    for i in range(10):
+        state, _ = jax.jit(step_fn)(state, step_key(4, i), jnp.float32(1.0))
+    np.testing.assert_array_equal(state.params["w"], res.state.params["w"])
+    # Resuming from step 8 replays steps 9-10 exactly; a finished run returns at once.
+    cut = str(tmp_path / "cut")
+    shutil.copytree(out, cut)
+    shutil.rmtree(os.path.join(cut, "10"))
+    again = fit(step_fn, init_fn, out_dir=cut, **kw)
+    np.testing.assert_array_equal(again.state.params["w"], res.state.params["w"])
+    strip = lambda rs: [{k: v for k, v in r.items() if k not in ("wall_time", "steps_per_sec")}
+                        for r in rs]
+    assert strip(read_metrics(cut)) == strip(recs)
+    done = fit(step_fn, init_fn, out_dir=cut, **kw)
+    assert done.last_record is None and int(done.state.step) == 10
+    with pytest.raises(ConfigMismatchError, match=r"train_config\.lr"):
+        fit(step_fn, init_fn, out_dir=cut, **dict(kw, metadata=dict(meta, train_config={
+            "lr": 0.2, "log_every": 2})))
+    assert mean_metrics([{"a": np.float32(1), "b": np.float32(2)},
+                         {"a": np.float32(2), "b": np.float32(4)}]) == {"a": 1.5, "b": 3.0}
+
+
+def test_fit_stops_at_the_first_non_finite_metric_before_any_checkpoint(tmp_path):
+    """A NaN loss at step 6 (of 12; checkpoints every 4, no log before the end) is found at
+    the next check point (step 8), before checkpoint 8 is written."""
+    from diffplan.train import fit, run_metadata
+
+    init_fn, step_fn = _quadratic_run()
+
+    def nan_at_6(state, key, nan):
+        new, metrics = step_fn(state, key, jnp.float32(1.0))
+        return new, dict(metrics, loss=jnp.where(state.step == 5, nan, metrics["loss"]))
+
+    out = str(tmp_path / "nan")
+    with pytest.raises(NonFiniteLossError, match=r"non-finite loss or metrics \(loss\) at step 6 "
+                                                r"\(detected at step 8.*last good checkpoint "
+                                                r"is step 4") as info:
+        fit(nan_at_6, init_fn, steps=12, seed=0, out_dir=out,
+            metadata=run_metadata(None, {}, {}, {"w": [3]}), data=jnp.float32(jnp.nan),
+            checkpoint_every=4, log_every=100, progress=False)
+    assert info.value.step == 6 and info.value.last_checkpoint_step == 4
+    assert ckpt.all_steps(out) == [4] and not os.path.exists(os.path.join(out, "metrics.jsonl"))
+
+
+def test_run_metadata_refuses_what_json_cannot_hold():
+    from diffplan.train import run_metadata
+
+    model = TinyDenoiser(TinyConfig())
+    meta = run_metadata(model, TinyConfig(), {"lr": 1}, {"x": [1, 2]}, {"k": (1, 2)})
+    assert meta["model_class"].endswith("toy_denoiser:TinyDenoiser")
+    assert meta["model_config_class"].endswith("toy_denoiser:TinyConfig")
+    assert meta["extra"] == {"k": [1, 2]} and meta["model_config"] == TinyConfig().to_dict()
+    with pytest.raises(ValueError, match="JSON-serialisable"):
+        run_metadata(model, TinyConfig(), {}, {}, {"bad": object()})

@@ -1,0 +1,205 @@
+"""The denoiser's objective: the DDPM noise-prediction loss on the generated channels, and the
+optimisation step built on it.
+
+The planning tensor ``x0`` is (B, H, W, C + G): C condition channels (kept clean) then G
+generated channels (path, goal). One training step (the paper's objective, sec. 3.3):
+
+    t   ~ U{0, ..., T-1}                  (B,)
+    eps ~ N(0, 1)                         (B, H, W, G)   generated channels only
+    x_t = [x0[..., :C],  sqrt(ab_t) x0[..., C:] + sqrt(1 - ab_t) eps]
+    L   = sum(loss_mask * (eps_theta(x_t, t, tokens) - eps)^2) / sum(loss_mask)
+
+with ``ab = cosine_schedule(T).alphas_cumprod`` (target x0[..., C:] instead of eps for
+``prediction="x0"``). ``loss_mask`` (B, H, W, G) lets the caller drop parts of the loss (e.g.
+the goal channel outside the seen area).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from diffplan import sharding as shd
+from diffplan.schedule import cosine_schedule
+from diffplan.train_state import (TrainConfig, TrainState, hashable, lr_schedule,
+                                  make_optimizer)
+
+__all__ = ["Batch", "check_batch", "diffusion_loss", "make_train_step", "make_val_loss"]
+
+
+class Batch(NamedTuple):
+    """One training batch.
+
+    Attributes:
+      x0: float32 (B, H, W, C + G), the clean planning tensor (conditions, then generated).
+      tokens: int32 (B, L), instruction token ids, 0 = padding.
+      loss_mask: float32 (B, H, W, G), weight of each generated entry in the loss.
+    """
+
+    x0: jax.Array
+    tokens: jax.Array
+    loss_mask: jax.Array
+
+
+def check_batch(batch: Batch, num_gen_channels: int) -> None:
+    """Raises ValueError unless the batch's shapes fit (x0 (B, H, W, C+G) with 0 < G <= C+G,
+    tokens (B, L), loss_mask (B, H, W, G)); arrays or ShapeDtypeStructs."""
+    x0, tokens, mask = batch
+    if len(x0.shape) != 4:
+        raise ValueError(f"Batch.x0 must be (B, H, W, C+G), got shape {tuple(x0.shape)}")
+    B, H, W, CG = x0.shape
+    if not 0 < num_gen_channels <= CG:
+        raise ValueError(f"num_gen_channels={num_gen_channels} must be in [1, {CG}] "
+                         f"(x0 has {CG} channels)")
+    if len(tokens.shape) != 2 or tokens.shape[0] != B:
+        raise ValueError(f"Batch.tokens must be (B={B}, L), got shape {tuple(tokens.shape)}")
+    if tuple(mask.shape) != (B, H, W, num_gen_channels):
+        raise ValueError(f"Batch.loss_mask must be {(B, H, W, num_gen_channels)}, got "
+                         f"{tuple(mask.shape)}")
+
+
+def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
+                   alphas_cumprod: jax.Array, num_gen_channels: int, prediction: str = "eps"):
+    """The masked noise-prediction MSE of one batch.
+
+    Args:
+      params: model ``params`` collection.
+      apply_fn: ``apply_fn({"params": params}, x_t, t, tokens) -> eps`` (B, H, W, G).
+      batch: a ``Batch``.
+      key: PRNG key (timesteps and noise).
+      alphas_cumprod: float32 (T,).
+      num_gen_channels: G.
+      prediction: "eps" (target: the noise) or "x0" (target: the clean generated channels).
+
+    Returns:
+      (loss scalar, aux dict with ``t`` (B,) and ``mask_sum``).
+    """
+    check_batch(batch, num_gen_channels)
+    x0, tokens, loss_mask = batch
+    x0 = x0.astype(jnp.float32)
+    G = num_gen_channels
+    C = x0.shape[-1] - G
+    B = x0.shape[0]
+    T = alphas_cumprod.shape[0]
+    t_key, eps_key = jax.random.split(key)
+    t = jax.random.randint(t_key, (B,), 0, T, dtype=jnp.int32)
+    eps = jax.random.normal(eps_key, x0.shape[:-1] + (G,), jnp.float32)
+    ab = alphas_cumprod[t][:, None, None, None]
+    x_gen = jnp.sqrt(ab) * x0[..., C:] + jnp.sqrt(1.0 - ab) * eps
+    x_t = jnp.concatenate([x0[..., :C], x_gen], axis=-1)
+    pred = apply_fn({"params": params}, x_t, t, tokens.astype(jnp.int32))
+    if pred.shape != eps.shape:
+        raise ValueError(f"model output shape {pred.shape} != generated-channel shape "
+                         f"{eps.shape}")
+    mask = loss_mask.astype(jnp.float32)
+    msum = jnp.sum(mask)
+    target = eps if prediction == "eps" else x0[..., C:]
+    sq = jnp.sum(mask * jnp.square(pred.astype(jnp.float32) - target))
+    loss = jnp.where(msum > 0, sq / jnp.maximum(msum, 1e-12), 0.0)
+    return loss, {"t": t, "mask_sum": msum}
+
+
+# ------------------------------------------------------------------------------- the step
+
+def _alphas_cumprod(config: TrainConfig) -> jax.Array:
+    return cosine_schedule(config.num_train_timesteps).alphas_cumprod
+
+
+def _compute_cfg(config: TrainConfig) -> TrainConfig:
+    """``config`` with the fields that do not enter the optimisation step normalised, so the
+    compiled step is shared by runs that differ only in seed, logging or checkpointing (the
+    seed enters through the keys, which are arguments)."""
+    return dataclasses.replace(config, seed=0, checkpoint_every=1, log_every=1, val_every=0,
+                               val_batches=1)
+
+
+def _make_core_step(model, config: TrainConfig, alphas_cumprod):
+    """The un-jitted pure step: (state, batch, key) -> (state, metrics)."""
+    optimizer = make_optimizer(config)
+    schedule = lr_schedule(config)
+    G = config.num_gen_channels
+    ab = jnp.asarray(alphas_cumprod, jnp.float32)
+
+    def core(state: TrainState, batch: Batch, key: jax.Array):
+        def loss_fn(p):
+            return diffusion_loss(p, model.apply, batch, key, ab, G, config.prediction)
+
+        (loss, _), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        grad_norm = optax.tree.norm(grads)
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        n = state.step.astype(jnp.float32)
+        decay = jnp.minimum(config.ema_decay, (1.0 + n) / (10.0 + n))
+        ema = jax.tree_util.tree_map(lambda e, p: decay * e + (1.0 - decay) * p,
+                                     state.ema_params, params)
+        new_state = TrainState(params=params, ema_params=ema, opt_state=opt_state,
+                               step=state.step + 1)
+        metrics = {"loss": loss, "grad_norm": grad_norm, "lr": schedule(state.step)}
+        return new_state, metrics
+
+    return core
+
+
+@functools.partial(jax.jit, static_argnames=("model", "config", "mesh"))
+def _train_step_jit(state, batch, key, alphas_cumprod, *, model, config, mesh):
+    state = shd.constrain_replicated(state, mesh)
+    batch = shd.constrain_batch(batch, mesh)
+    new_state, metrics = _make_core_step(model, config, alphas_cumprod)(state, batch, key)
+    return shd.constrain_replicated((new_state, metrics), mesh)
+
+
+def make_train_step(model, config: TrainConfig, *, mesh=None, alphas_cumprod=None):
+    """A jitted pure ``train_step(state, batch, key) -> (state, metrics)``: the loss's
+    gradient, clipped AdamW, then the EMA update (``TrainState``).
+
+    The batch is split over the ``"data"`` axis of ``mesh`` (default: all devices); state,
+    key and metrics (``loss``, ``grad_norm``, ``lr``: scalars) are replicated. A thin wrapper
+    places the inputs (a no-op when they already are; ``train_step.placed`` skips it) and
+    calls a jitted function whose compilation is cached per (model, config without seed and
+    logging fields, mesh): ``diffplan.train.train`` uses the same compiled step.
+    """
+    mesh = shd.data_mesh() if mesh is None else mesh
+    ab = _alphas_cumprod(config) if alphas_cumprod is None else jnp.asarray(alphas_cumprod)
+    ab = shd.replicate(ab, mesh)
+    cfg = _compute_cfg(config)
+    hashable(model, "model")
+
+    def placed(state: TrainState, batch: Batch, key: jax.Array):
+        return _train_step_jit(state, batch, key, ab, model=model, config=cfg, mesh=mesh)
+
+    def train_step(state: TrainState, batch: Batch, key: jax.Array):
+        return placed(shd.replicate(state, mesh), shd.shard_batch(Batch(*batch), mesh),
+                      shd.replicate(key, mesh))
+
+    train_step.placed = placed
+    return train_step
+
+
+@functools.partial(jax.jit, static_argnames=("model", "config", "batch_fn", "mesh"))
+def _val_loss(params, val_root, alphas_cumprod, *, model, config, batch_fn, mesh):
+    """Mean loss of ``params`` over ``config.val_batches`` batches with fixed keys."""
+
+    def body(total, j):
+        batch_key, loss_key = jax.random.split(jax.random.fold_in(val_root, j))
+        batch = shd.constrain_batch(Batch(*batch_fn(batch_key, config.batch_size)), mesh)
+        loss, _ = diffusion_loss(params, model.apply, batch, loss_key, alphas_cumprod,
+                                 config.num_gen_channels, config.prediction)
+        return total + loss, None
+
+    total, _ = jax.lax.scan(body, jnp.zeros((), jnp.float32), jnp.arange(config.val_batches))
+    return shd.constrain_replicated(total / config.val_batches, mesh)
+
+
+def make_val_loss(model, config: TrainConfig, batch_fn: Callable, val_root: jax.Array, *,
+                  mesh) -> Callable:
+    """``val_loss(params) -> scalar``: the mean loss over ``config.val_batches`` batches of
+    ``batch_fn`` whose keys are fixed by ``val_root`` (batch j: ``fold_in(val_root, j)``)."""
+    cfg = dataclasses.replace(_compute_cfg(config), val_batches=config.val_batches)
+    return functools.partial(
+        _val_loss, val_root=shd.replicate(val_root, mesh),
+        alphas_cumprod=shd.replicate(_alphas_cumprod(config), mesh), model=model, config=cfg,
+        batch_fn=hashable(batch_fn, "val_batch_fn"), mesh=mesh)
