@@ -1,12 +1,13 @@
 """The baselines' rows of the CompILE tables (BC, CQL, DD-style; the paper's Table 1), measured
-exactly as our planner's: the same seeded evaluation episodes (``compile_common.eval_episodes``),
-the executed trajectories with collisions (``diffplan.baselines.rollout.policy_rollout``), the
-same ``compile_common.metrics_row`` (plus 95% intervals and per-seed values for several seeds).
+exactly as our planner's: the same seeded evaluation episodes (``eval_episodes``), the executed
+trajectories with collisions (``diffplan.baselines.rollout.policy_rollout``), the same
+``metrics_row`` (plus 95% intervals and per-seed values for several seeds). The policies act
+in the grid world through ``envs.gridworld.baselines.POLICY_WORLD``.
 
     python -m experiments.baselines_eval --settings 1o1g,mo1g,p_mo2g --seeds 2001,2002,2003
 
-``baseline_rows(setting, seeds, episodes, batch_size, progress)`` is what
-``experiments.compile_common`` calls for its ``--baselines`` rows. The shipped checkpoints are
+``baseline_rows(setting, seeds, episodes, batch_size, progress)`` is what the grid-world
+experiments call for their ``--baselines`` rows. The shipped checkpoints are
 ``checkpoints/baselines/{bc,cql,dd}`` (``experiments.train_baselines`` makes them).
 """
 from __future__ import annotations
@@ -22,9 +23,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import compile_common as cc
+from diffplan.baselines.policies import BASELINES, load_policy
+from diffplan.baselines.rollout import policy_rollout
+from envs.gridworld.baselines import POLICY_WORLD
+from envs.gridworld.config import SETTINGS, make_config
+from envs.gridworld.task import GridTask
+from experiments.gridworld_eval import (PER_SEED_FIELDS, add_intervals, eval_episodes,
+                                        format_intervals, format_table, metrics_row)
+from experiments.harness import (CHECKPOINT_ROOT, DEFAULT_EVAL_SEED, EVALUATION_SEEDS,
+                                 ROLLOUT_STREAM, VALIDATION_SEED, concat_trees, fail,
+                                 parse_seeds)
 
-CHECKPOINT_DIR = os.path.join(cc.CHECKPOINT_ROOT, "baselines")
+CHECKPOINT_DIR = os.path.join(CHECKPOINT_ROOT, "baselines")
 PLAN_FIELDS = ("plan_precision", "plan_recall", "plan_f1")
 DEFAULT_DD_NUM_STEPS = 10
 DEFAULT_DD_GUIDANCE = 1.0
@@ -34,8 +44,6 @@ DEFAULT_DD_GUIDANCE = 1.0
 def _runner(task, act_fn, calls_per_move: int, plan_channels):
     """jitted (params, keys, episodes) -> Rollout of one policy (cached: one compilation per
     task and architecture)."""
-    from diffplan.baselines.rollout import policy_rollout
-
     return jax.jit(lambda params, keys, episodes: policy_rollout(
         task, act_fn, params, keys, episodes, calls_per_move=calls_per_move,
         plan_channels=plan_channels))
@@ -50,7 +58,7 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
 
     n = int(np.shape(episodes.tokens)[0])
     run = _runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels)
-    root = jax.random.fold_in(jax.random.PRNGKey(seed), cc.ROLLOUT_STREAM)
+    root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
     per_call = min(n, batch_size)
     outs = []
     start = time.time()
@@ -67,11 +75,11 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
             out = jax.device_get(run(policy.params, keys, chunk))
             outs.append(jax.tree.map(lambda x: x[:len(idx)], out))
             bar.update(len(idx))
-    return cc.concat_trees(outs), time.time() - start
+    return concat_trees(outs), time.time() - start
 
 
 def _row(policy, rollout, episodes, seconds, has_reference):
-    row = cc.metrics_row(policy.method, rollout, episodes, seconds, has_reference)
+    row = metrics_row(policy.method, rollout, episodes, seconds, has_reference)
     if policy.plan_channels is None:  # no plan: the plan metrics would be meaningless zeros
         for key in PLAN_FIELDS:
             row.pop(key)
@@ -86,37 +94,33 @@ def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_siz
                   episodes_by_seed: dict | None = None) -> list[dict]:
     """One metrics row per baseline ("BC", "CQL", "DD-style") on ``episodes`` evaluation
     episodes of each seed (pooled; with several seeds also SR_ci95 and per_seed values, as
-    compile_common.main writes them), from the shipped checkpoints under checkpoint_root
+    the grid-world experiments write them), from the shipped checkpoints under checkpoint_root
     (default checkpoints/baselines). episodes_by_seed: {seed: Episode batch} already generated
-    with compile_common.eval_episodes (default: generated here). Raises FileNotFoundError
+    with eval_episodes (default: generated here). Raises FileNotFoundError
     when a checkpoint is missing."""
-    from diffplan.baselines.policies import BASELINES, load_policy
-    from envs.gridworld.config import make_config
-    from envs.gridworld.task import GridTask
-
     root = CHECKPOINT_DIR if checkpoint_root is None else checkpoint_root
     grid_config = make_config(setting)
     task = GridTask(grid_config)
     has_reference = grid_config.has_reference
     per_seed = {seed: (episodes_by_seed or {}).get(seed) for seed in seeds}
-    per_seed = {seed: cc.eval_episodes(grid_config, episodes, seed) if eps is None else eps
+    per_seed = {seed: eval_episodes(grid_config, episodes, seed) if eps is None else eps
                 for seed, eps in per_seed.items()}
-    pooled = cc.concat_trees(list(per_seed.values()))
+    pooled = concat_trees(list(per_seed.values()))
     rows = []
     for name in (BASELINES if methods is None else methods):
-        policy = load_policy(name, os.path.join(root, name), dd_num_steps=dd_num_steps,
-                             dd_guidance=dd_guidance)
+        policy = load_policy(name, os.path.join(root, name), POLICY_WORLD,
+                             dd_num_steps=dd_num_steps, dd_guidance=dd_guidance)
         outs = [evaluate_policy(policy, task, eps, seed, batch_size, progress,
                                 f"{setting} {policy.method} (seed {seed})")
                 for seed, eps in per_seed.items()]
-        rollout = cc.concat_trees([r for r, _ in outs])
+        rollout = concat_trees([r for r, _ in outs])
         row = _row(policy, rollout, pooled, sum(t for _, t in outs), has_reference)
         if len(seeds) > 1:
-            cc.add_intervals(row, rollout, pooled, has_reference)
+            add_intervals(row, rollout, pooled, has_reference)
             row["per_seed"] = {}
             for (seed, eps), (r, t) in zip(per_seed.items(), outs):
                 single = _row(policy, r, eps, t, has_reference)
-                row["per_seed"][str(seed)] = {k: single[k] for k in cc.PER_SEED_FIELDS
+                row["per_seed"][str(seed)] = {k: single[k] for k in PER_SEED_FIELDS
                                               if k in single}
         rows.append(row)
     return rows
@@ -131,13 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated settings (default all three)")
     p.add_argument("--episodes", type=int, default=1000,
                    help="evaluation episodes per seed (default 1000)")
-    p.add_argument("--seed", type=int, default=cc.DEFAULT_EVAL_SEED,
-                   help=f"evaluation seed (default {cc.DEFAULT_EVAL_SEED}); episode i is "
+    p.add_argument("--seed", type=int, default=DEFAULT_EVAL_SEED,
+                   help=f"evaluation seed (default {DEFAULT_EVAL_SEED}); episode i is "
                         "generate(fold_in(PRNGKey(seed), i))")
     p.add_argument("--seeds", metavar="S1,S2,...", default=None,
                    help="several seeds, pooled with 95%% intervals and per-seed values (the "
-                        f"README uses {','.join(map(str, cc.EVALUATION_SEEDS))}; "
-                        f"{cc.VALIDATION_SEED} is the validation seed)")
+                        f"README uses {','.join(map(str, EVALUATION_SEEDS))}; "
+                        f"{VALIDATION_SEED} is the validation seed)")
     p.add_argument("--methods", default="bc,cql,dd",
                    help="comma-separated baselines among bc,cql,dd (default all)")
     p.add_argument("--checkpoint-root", metavar="DIR", default=CHECKPOINT_DIR,
@@ -157,14 +161,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    from diffplan.baselines.policies import BASELINES
     from diffplan.jax_cache import enable_compilation_cache
-    from envs.gridworld.config import SETTINGS
     from experiments import cli
 
     parser = build_parser()
     args = parser.parse_args(argv)
-    seeds = cc.parse_seeds(parser, args)
+    seeds = parse_seeds(parser, args)
     settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     if not settings or any(s not in SETTINGS for s in settings):
@@ -179,7 +181,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     cli.check_output_file(parser, "--json", args.json)
     for m in methods:
         if not os.path.isdir(os.path.join(args.checkpoint_root, m)):
-            cc.fail(f"no {m} checkpoint in {args.checkpoint_root}: train and ship it with "
+            fail(f"no {m} checkpoint in {args.checkpoint_root}: train and ship it with "
                     "`python -m experiments.train_baselines --ship`")
     enable_compilation_cache()
     start = time.time()
@@ -191,12 +193,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                      dd_guidance=args.dd_guidance)
         print(f"\n{setting}: {args.episodes} episodes per seed, seed(s) "
               f"{','.join(map(str, seeds))}")
-        print(cc.format_table(setting_rows))
+        print(format_table(setting_rows))
         if len(seeds) > 1:
-            print(cc.format_intervals(setting_rows, seeds))
+            print(format_intervals(setting_rows, seeds))
         rows += [{"setting": setting, **row} for row in setting_rows]
     result = {"experiment": "baselines_eval", "episodes": args.episodes, "seed": seeds[0],
-              "seeds": list(seeds), "validation": cc.VALIDATION_SEED in seeds,
+              "seeds": list(seeds), "validation": VALIDATION_SEED in seeds,
               "settings": list(settings), "dd_num_steps": args.dd_num_steps,
               "dd_guidance": args.dd_guidance, "seconds": time.time() - start,
               "machine": f"{os.cpu_count()} CPU cores, jax {jax.__version__} on "

@@ -3,14 +3,13 @@
     python -m experiments.train_baselines                 # train all three (resumes)
     python -m experiments.train_baselines --ship --results results/baselines.json
 
-One model per baseline serves the three settings (trained on the planner's mixture of them,
-``envs.gridworld.training.TRAINING_MIXTURE``), as one denoiser does. Runs go to
-``runs/baselines/<name>`` (``dd`` has ``diffusion/`` and ``inverse_dynamics/``) with a
-checkpoint every few minutes; a killed run resumes where its last checkpoint left it, computing
-exactly what an uninterrupted run would. ``--ship`` exports the finished runs as small
-evaluation checkpoints under ``checkpoints/baselines/<name>/`` with a NOTE.md each (command,
-seed, steps, training time, and the results of ``experiments.baselines_eval`` JSONs given with
-``--results``).
+One model per baseline (``diffplan.baselines`` on ``envs.gridworld.baselines``' data) serves
+the three settings, trained on the planner's mixture of them (``TRAINING_MIXTURE``). Runs go
+to ``runs/baselines/<name>`` (``dd`` has ``diffusion/`` and ``inverse_dynamics/``) with a
+checkpoint every few minutes; a killed run resumes exactly. ``--ship`` exports the finished
+runs as small evaluation checkpoints under ``checkpoints/baselines/<name>/`` with a NOTE.md
+each (command, seed, steps, training time, and the rows of ``experiments.baselines_eval``
+JSONs given with ``--results``).
 """
 from __future__ import annotations
 
@@ -22,10 +21,19 @@ import sys
 import time
 from typing import Sequence
 
-from experiments import compile_common as cc
+from diffplan.baselines import bc, cql, dd
+from diffplan.baselines.policies import DD_PARTS, METHOD_NAMES, export_params
+from diffplan.checkpoint import read_metadata
+from diffplan.jax_cache import enable_compilation_cache
+from diffplan.train import ConfigMismatchError
+from envs.gridworld import baselines as gb
+from envs.gridworld.training import TRAINING_MIXTURE
+from experiments import cli
+from experiments.gridworld_eval import format_table
+from experiments.harness import CHECKPOINT_ROOT, REPO_ROOT, fail
 
-DEFAULT_RUN_DIR = os.path.join(cc.REPO_ROOT, "runs", "baselines")
-SHIP_DIR = os.path.join(cc.CHECKPOINT_ROOT, "baselines")
+DEFAULT_RUN_DIR = os.path.join(REPO_ROOT, "runs", "baselines")
+SHIP_DIR = os.path.join(CHECKPOINT_ROOT, "baselines")
 NAMES = ("bc", "cql", "dd")
 
 DESCRIPTIONS = {
@@ -61,8 +69,6 @@ def _json_file(path: str) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from diffplan.baselines import bc, cql, dd
-
     b, c, d = bc.BCTrainConfig(), cql.CQLTrainConfig(), dd.DDTrainConfig()
     p = argparse.ArgumentParser(
         prog="python -m experiments.train_baselines",
@@ -89,8 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{d.id_batch_size})")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                    help="write a checkpoint every N steps in every run (default: BC / CQL "
-                        f"{b.checkpoint_every}, DD {d.checkpoint_every}: a few minutes each "
-                        "on this CPU)")
+                        f"{b.checkpoint_every}, DD {d.checkpoint_every}: minutes on this CPU)")
     p.add_argument("--no-train", action="store_true",
                    help="do not train (e.g. --ship finished runs only)")
     p.add_argument("--ship", action="store_true",
@@ -104,18 +109,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the training command recorded in NOTE.md (default: this command "
                         "without --ship / --results)")
     p.add_argument("--remark", action="append", default=[],
-                   help="a sentence added to every NOTE.md (e.g. what shared the CPU); "
-                        "repeatable")
+                   help="a sentence added to every NOTE.md (e.g. what shared the CPU)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
 
 
 def configs(args):
     """(bc, cql, dd) training configs from the arguments."""
-    from diffplan.baselines import bc, cql, dd
-
-    every = {} if args.checkpoint_every is None else {"checkpoint_every":
-                                                      args.checkpoint_every}
+    every = {} if args.checkpoint_every is None else {"checkpoint_every": args.checkpoint_every}
     return (bc.BCTrainConfig(seed=args.seed, steps=args.bc_steps, **every),
             cql.CQLTrainConfig(seed=args.seed, steps=args.cql_steps,
                                buffer_size=args.cql_buffer, **every),
@@ -123,56 +124,46 @@ def configs(args):
                              **every))
 
 
-def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True) -> dict:
-    """Trains the named baselines into run_dir/<name>; returns {name: seconds of this call}."""
-    from diffplan.baselines import bc, cql, dd
-
+def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True, *,
+              mixture=TRAINING_MIXTURE, dd_model=dd.DDConfig()) -> dict:
+    """Trains the named baselines into run_dir/<name> on the mixture of settings; returns
+    {name: seconds of this call}."""
     seconds = {}
     for name in names:
         start = time.time()
         out = os.path.join(run_dir, name)
         if name == "bc":
-            bc.train_bc(out, bc_config, progress=progress)
+            gb.train_bc(out, bc_config, mixture=mixture, progress=progress)
         elif name == "cql":
-            cql.train_cql(out, cql_config, progress=progress)
+            gb.train_cql(out, cql_config, mixture=mixture, progress=progress)
         else:
-            dd.train_dd(os.path.join(out, "diffusion"), dd_config, progress=progress)
-            dd.train_inverse_dynamics(os.path.join(out, "inverse_dynamics"), dd_config,
-                                      progress=progress)
+            gb.train_dd(os.path.join(out, "diffusion"), dd_config, dd_model, mixture, progress)
+            gb.train_inverse_dynamics(os.path.join(out, "inverse_dynamics"), dd_config,
+                                      mixture=mixture, progress=progress)
         seconds[name] = time.time() - start
         print(f"{name}: {seconds[name] / 60:.1f} min in this call", file=sys.stderr)
     return seconds
 
 
-def _parts(name):
-    from diffplan.baselines.policies import DD_PARTS
-    return DD_PARTS if name == "dd" else ("",)
-
-
 def ship(names, run_dir, ship_dir, results, command, remarks=()) -> None:
     """Exports run_dir/<name> to ship_dir/<name> and writes its NOTE.md."""
-    from diffplan.baselines.policies import METHOD_NAMES, export_params
-
     for name in names:
         summaries = []
-        for part in _parts(name):
-            src = os.path.join(run_dir, name, part)
-            dst = os.path.join(ship_dir, name, part)
+        for part in DD_PARTS if name == "dd" else ("",):
+            src, dst = (os.path.join(root, name, part) for root in (run_dir, ship_dir))
             os.makedirs(dst, exist_ok=True)
             export_params(src, dst, ema=(name == "dd" and part == "diffusion"))
             summaries.append((part, _summary(src)))
-        write_note(os.path.join(ship_dir, name), name, METHOD_NAMES[name], summaries, results,
-                   command, remarks)
-        print(f"shipped {os.path.join(ship_dir, name)}")
+        out = os.path.join(ship_dir, name)
+        write_note(out, name, METHOD_NAMES[name], summaries, results, command, remarks)
+        print(f"shipped {out}")
 
 
 def _summary(train_dir) -> dict:
-    from diffplan.checkpoint import read_metadata
     meta = read_metadata(train_dir)
     tc = meta.get("train_config", {})
-    return {"step": meta.get("step"), "seed": tc.get("seed"), "batch_size": tc.get("batch_size"),
-            "lr": tc.get("lr"), "wall_time": meta.get("wall_time", float("nan")),
-            "model_config": meta.get("model_config")}
+    return {"step": meta.get("step"), **{k: tc.get(k) for k in ("seed", "batch_size", "lr")},
+            "wall_time": meta.get("wall_time", float("nan")), "model_config": meta["model_config"]}
 
 
 def write_note(out_dir, name, method, summaries, results, command, remarks=()):
@@ -201,37 +192,27 @@ def write_note(out_dir, name, method, summaries, results, command, remarks=()):
                    f"{result.get('dd_guidance')}" if name == "dd" else "")
         lines += [f"`python -m experiments.baselines_eval --episodes {result['episodes']} "
                   f"--seeds {seeds}` ({result.get('machine', '')}{dd_note}):", "", "```"]
-        lines += ["setting  " + cc.format_table(rows).splitlines()[0]]
+        lines += ["setting  " + format_table(rows).splitlines()[0]]
         for r in rows:
-            lines.append(f"{r['setting']:<8} " + cc.format_table([r]).splitlines()[2])
+            lines.append(f"{r['setting']:<8} " + format_table([r]).splitlines()[2])
         lines += ["```", ""]
     with open(os.path.join(out_dir, "NOTE.md"), "w") as f:
         f.write("\n".join(lines))
 
 
 def _default_command(argv) -> str:
-    drop_flags = {"--ship", "--no-train"}
-    drop_values = {"--results", "--command", "--remark", "--ship-dir"}
+    """The command without --ship, --no-train and the shipping flags with their values."""
+    drop_values = ("--results", "--command", "--remark", "--ship-dir")
     kept, skip = [], False
     for a in argv:
-        if skip:
-            skip = False
-            continue
-        if a in drop_flags:
-            continue
-        if a in drop_values:
-            skip = True
-            continue
-        if any(a.startswith(f + "=") for f in drop_values):
-            continue
-        kept.append(a)
+        if not (skip or a in ("--ship", "--no-train") + drop_values
+                or a.startswith(tuple(f + "=" for f in drop_values))):
+            kept.append(a)
+        skip = not skip and a in drop_values
     return " ".join(["python -m experiments.train_baselines", *map(shlex.quote, kept)])
 
 
 def main(argv: Sequence[str] | None = None):
-    from diffplan.jax_cache import enable_compilation_cache
-    from experiments import cli
-
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -253,12 +234,11 @@ def main(argv: Sequence[str] | None = None):
     bc_config, cql_config, dd_config = configs(args)
     enable_compilation_cache()
     if not args.no_train:
-        from diffplan.train import ConfigMismatchError
         try:
             seconds = train_all(names, args.run_dir, bc_config, cql_config, dd_config,
                                 not args.no_progress)
         except ConfigMismatchError as e:
-            cc.fail(str(e))
+            fail(str(e))
         print(f"trained {','.join(names)} in {sum(seconds.values()) / 60:.1f} min",
               file=sys.stderr)
     if args.ship:

@@ -1,9 +1,13 @@
-"""The baselines (issue 12): goal vectors, the shared policy evaluation, BC on a one-step problem,
-CQL's conservative term on a hand-made MDP, and every baseline trained a few steps, shipped,
-loaded and evaluated through ``experiments.baselines_eval.baseline_rows``."""
+"""The world-agnostic baselines (diffplan.baselines) on a toy world defined here, a 1-D corridor,
+so that BC, CQL, the DD-style planner, their loading and the policy rollout are shown to need
+no grid world: the conv net's parameter tree, BC and CQL learning the corridor through their
+training functions and acting through policy_rollout, the epsilon-greedy collector, CQL's
+conservative term on a tabular MDP, the DD-style batches, and the DD-style policy acting with
+an oracle denoiser and a trained inverse dynamics. This module imports nothing from envs/ or
+experiments/ (the grid world's baselines: tests/test_gridworld_baselines.py)."""
 from __future__ import annotations
 
-import os
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -11,151 +15,199 @@ import numpy as np
 import optax
 import pytest
 
-from diffplan.baselines import bc, common, cql, dd
+from diffplan.baselines import bc, cql, dd, nets
+from diffplan.baselines.policies import PolicyWorld, export_params, load_policy
 from diffplan.baselines.rollout import policy_rollout
 from diffplan.train import TrainState
-from envs.gridworld import bfs, env, grammar
-from envs.gridworld.config import make_config
-from envs.gridworld.task import GridTask
-from experiments import compile_common as cc
+
+# --------------------------------------------------------------------- the toy world
+
+N = 6
+"""Cells of the corridor. The agent walks left (action 0) or right (1) towards the goal cell
+that the one-token instruction names; the condition is the agent's cell one-hot (1, N, 1)."""
+MAX_STEPS = 8
+LEFT, RIGHT = 0, 1
 
 
-# ---------------------------------------------------------------------------- goal vector
-
-def _check_goal_vector(config, episodes):
-    goal = np.asarray(common.goal_vector(episodes.tokens))
-    n = common.NUM_CLASSES
-    assert goal.shape == (len(episodes.tokens), common.GOAL_DIM)
-    np.testing.assert_array_equal(goal[:, :n].argmax(-1), episodes.target_class - 1)
-    np.testing.assert_array_equal(goal[:, :n].sum(-1), 1)
-    if config.has_reference:
-        np.testing.assert_array_equal(goal[:, n:2 * n].argmax(-1), episodes.reference_class - 1)
-        np.testing.assert_array_equal(goal[:, 2 * n:].argmax(-1), episodes.direction)
-        np.testing.assert_array_equal(goal[:, n:].sum(-1), 2)
-    else:
-        assert not goal[:, n:].any()
+def corridor_goal(tokens):
+    """The corridor's goal vector: one-hot (B, N) of the instruction's goal cell."""
+    return jax.nn.one_hot(jnp.asarray(tokens)[..., 0], N)
 
 
-@pytest.mark.parametrize("setting", ["1o1g", "mo1g", "p_mo2g"])
-def test_goal_vector_reads_the_instruction(setting, grid_configs, gen_batch):
-    _check_goal_vector(grid_configs[setting], gen_batch(setting, 31)[0])
+def corridor_condition(agent):
+    return jax.nn.one_hot(agent, N)[None, :, None]
 
 
-def test_goal_vector_reads_every_p_mo2g_phrasing():
-    config = make_config("p_mo2g", paraphrase=True)
-    episodes = cc.eval_episodes(config, 48, seed=31)
-    assert len(set(np.asarray(episodes.template).tolist())) == config.num_templates
-    _check_goal_vector(config, episodes)
+def corridor_expert(agent, goal):
+    return jnp.where(goal > agent, RIGHT, LEFT).astype(jnp.int32)
 
 
-def test_goal_vector_of_padding_is_zero():
-    assert not np.asarray(common.goal_vector(jnp.zeros((3, grammar.MAX_TOKENS), int))).any()
+def corridor_frame(condition):
+    return condition[0, :, 0]
 
 
-# ------------------------------------------------------------------ the shared evaluation
-
-def _bfs_policy(params, conditions, tokens, keys):
-    """An oracle of the observation: the first move of a shortest path over cells not seen
-    as obstacles to the seen cell holding the instruction's target (fully observed worlds)."""
-    del params, keys
-
-    def one(cond, toks):
-        target_token = jnp.argmax(common.goal_vector(toks)[:common.NUM_CLASSES]) + \
-            grammar.OBJECT_TOKEN_OFFSET
-        flat = jnp.argmax((cond[..., 0] == target_token).ravel())
-        size = cond.shape[0]
-        target = jnp.stack([flat // size, flat % size])
-        agent_flat = jnp.argmax(cond[..., 2].ravel())
-        agent = jnp.stack([agent_flat // size, agent_flat % size])
-        passable = cond[..., 1] < 0.5
-        return bfs.best_move(bfs.cost_to_go(passable, target), passable, agent)
-
-    return jax.vmap(one)(conditions, tokens)
+def corridor_plan(trajectory, condition):
+    return jnp.where(jnp.any(trajectory > 0.5, -1), 1.0, -1.0).reshape(condition.shape[:2])[
+        ..., None]
 
 
-def _north_policy(params, conditions, tokens, keys):
-    del params, tokens, keys
-    return jnp.zeros(conditions.shape[0], jnp.int32)
+def all_episodes():
+    """Every (start, goal) pair with start != goal: 30 episodes."""
+    pairs = [(s, g) for s in range(N) for g in range(N) if s != g]
+    return {"start": jnp.array([p[0] for p in pairs], jnp.int32),
+            "goal": jnp.array([p[1] for p in pairs], jnp.int32)}
 
 
-@pytest.fixture(scope="module")
-def mo1g_episodes():
-    return cc.eval_episodes(make_config("mo1g"), 32, seed=77)
+def random_episodes(key, n):
+    k1, k2 = jax.random.split(key)
+    start = jax.random.randint(k1, (n,), 0, N)
+    goal = (start + jax.random.randint(k2, (n,), 1, N)) % N
+    return {"start": start, "goal": goal}
 
 
-def test_policy_rollout_of_an_oracle_succeeds_without_collisions(mo1g_episodes):
-    task = GridTask(make_config("mo1g"))
-    keys = jax.random.split(jax.random.PRNGKey(0), 32)
-    out = jax.device_get(jax.jit(lambda k, e: policy_rollout(task, _bfs_policy, None, k, e))(
-        keys, mo1g_episodes))
-    row = cc.metrics_row("oracle", out, mo1g_episodes, 0.0, False)
-    assert row["SR"] == 100.0 and row["collisions_per_episode"] == 0.0
-    np.testing.assert_array_equal(out.steps, mo1g_episodes.expert_length)  # shortest paths
-    assert row["path_recall"] > 80.0
+@dataclasses.dataclass(frozen=True)
+class Corridor:
+    """diffplan.task.Task of the corridor (what policy_rollout uses) and
+    diffplan.baselines.cql.Collector (what the CQL buffer is collected with)."""
+
+    height: int = 1
+    width: int = N
+    num_cond_channels: int = 1
+    num_gen_channels: int = 1
+    max_steps: int = MAX_STEPS
+    num_actions: int = 2
+
+    def episodes(self, key, n):
+        return random_episodes(key, n)
+
+    def reset(self, episode):
+        return {"agent": episode["start"], "goal": episode["goal"], "t": jnp.int32(0),
+                "done": jnp.array(False), "success": jnp.array(False)}
+
+    def tokens(self, episode):
+        return episode["goal"][None]
+
+    instruction = tokens
+
+    def condition(self, state):
+        return corridor_condition(state["agent"])
+
+    def observe(self, state):
+        return state["agent"].astype(jnp.int8)
+
+    def step(self, state, action):
+        agent = jnp.clip(state["agent"] + jnp.where(action == RIGHT, 1, -1), 0, N - 1)
+        success = agent == state["goal"]
+        new = {"agent": agent, "goal": state["goal"], "t": state["t"] + 1, "success": success,
+               "done": success | (state["t"] + 1 >= self.max_steps)}
+        return jax.tree.map(lambda a, b: jnp.where(state["done"], a, b), state, new)
+
+    def expert_action(self, state):
+        return corridor_expert(state["agent"], state["goal"])
+
+    def reward(self, state):
+        return -jnp.abs(state["goal"] - state["agent"]).astype(jnp.float32) / N
+
+    def terminal(self, state):
+        return state["success"]
+
+    def done(self, state):
+        return state["done"]
+
+    def position(self, state):
+        return jnp.stack([jnp.int32(0), state["agent"]])
 
 
-def test_policy_rollout_matches_a_hand_written_loop(mo1g_episodes):
-    """Always north: the executed positions, steps and collisions equal env.step's, one
-    episode at a time in Python."""
-    config = make_config("mo1g")
-    task = GridTask(config)
-    keys = jax.random.split(jax.random.PRNGKey(1), 32)
-    out = jax.device_get(jax.jit(lambda k, e: policy_rollout(task, _north_policy, None, k,
-                                                             e))(keys, mo1g_episodes))
-    step = jax.jit(lambda s: env.step(s, jnp.int32(0), config))
-    for i in range(0, 32, 4):
-        episode = jax.tree.map(lambda x: x[i], mo1g_episodes)
-        state = env.reset(episode, config)
-        cells = [np.asarray(state.agent)]
-        while not bool(state.done):
-            state = step(state)
-            cells.append(np.asarray(state.agent))
-        assert out.steps[i] == int(state.t) == len(cells) - 1
-        np.testing.assert_array_equal(out.positions[i, :len(cells)], np.stack(cells))
-        rest = out.positions[i, len(cells):]
-        np.testing.assert_array_equal(rest, np.broadcast_to(cells[-1], rest.shape))
-        assert out.final_state.collisions[i] == int(state.collisions)
-        assert bool(out.final_state.success[i]) == bool(state.success)
-    assert out.final_state.collisions.sum() > 0
+CORRIDOR = Corridor()
+WORLD = PolicyWorld(goal_fn=corridor_goal, goal_dim=N, frame_fn=corridor_frame,
+                    plan_fn=corridor_plan, plan_channels=1)
+SHAPES = {"condition": (1, 1, N, 1), "goal": (1, N)}
+SMALL_NET = nets.ConvNetConfig(channels=4, hidden=16, num_outputs=2)
 
 
-# ----------------------------------------------------------------------- BC, one step
-
-def _one_step_problems():
-    """One object beside the agent, north, east, south or west of it (a different class each
-    time), the instruction names it: the expert move is one step onto it."""
-    size, centre = 16, 8
-    conditions, tokens, moves = [], [], []
-    for move, (d_row, d_col) in enumerate(np.asarray(bfs.MOVES)):
-        for k in (1 + move, 5 + move):
-            ids = np.full((size, size), grammar.EMPTY_ID, np.float32)
-            ids[centre + d_row, centre + d_col] = grammar.class_to_token(k)
-            agent = np.zeros((size, size), np.float32)
-            agent[centre, centre] = 1
-            conditions.append(np.stack([ids, np.zeros_like(ids), agent, agent,
-                                        np.ones_like(ids)], -1))
-            tokens.append(grammar.encode(f"Go to the {grammar.OBJECT_NAMES[k - 1]}."))
-            moves.append(move)
-    return jnp.asarray(np.stack(conditions)), jnp.asarray(np.stack(tokens)), \
-        jnp.asarray(moves, jnp.int32)
+def corridor_bc_batch(key, batch_size):
+    """(conditions (B, 1, N, 1), goal vectors (B, N), expert actions (B,))."""
+    eps = random_episodes(key, batch_size)
+    return (jax.vmap(corridor_condition)(eps["start"]), jax.nn.one_hot(eps["goal"], N),
+            corridor_expert(eps["start"], eps["goal"]))
 
 
-def test_bc_learns_the_expert_move_of_a_one_step_problem():
-    batch = _one_step_problems()
-    model = common.GoalConvNet(common.ConvNetConfig())
-    optimizer = optax.adam(1e-3)
-    state = bc.init_state(model, optimizer, seed=0)
-    step = jax.jit(bc.make_bc_step(model, optimizer, lambda key: batch))
-    first = None
-    for i in range(60):
-        state, metrics = step(state, jax.random.PRNGKey(i), None)
-        first = float(metrics["loss"]) if first is None else first
-    act = common.greedy_act(model)
-    np.testing.assert_array_equal(act(state.params, batch[0], batch[1], None), batch[2])
-    assert float(metrics["loss"]) < 0.05 * first
+def q_inputs(obs, instruction):
+    return jax.vmap(corridor_condition)(obs.astype(jnp.int32)), corridor_goal(instruction)
 
 
-# --------------------------------------------------------------- CQL, a hand-made MDP
+def run(policy, params, calls_per_move=0, plan_channels=None):
+    """policy_rollout of every corridor episode (numpy)."""
+    episodes = all_episodes()
+    keys = jax.random.split(jax.random.PRNGKey(0), len(episodes["start"]))
+    fn = jax.jit(lambda p, k, e: policy_rollout(CORRIDOR, policy, p, k, e,
+                                                calls_per_move=calls_per_move,
+                                                plan_channels=plan_channels))
+    return episodes, jax.device_get(fn(params, keys, episodes))
+
+
+def assert_solves_every_episode(episodes, out):
+    distance = np.abs(np.asarray(episodes["goal"]) - np.asarray(episodes["start"]))
+    assert out.final_state["success"].all()
+    np.testing.assert_array_equal(out.steps, distance)  # shortest: no step away from the goal
+
+
+# ------------------------------------------------------------------------ the network
+
+def test_goal_conv_net_takes_the_goal_vector_before_its_last_dense_layer():
+    params = nets.init_net(nets.GoalConvNet(nets.ConvNetConfig()), jax.random.PRNGKey(0),
+                           {"condition": (1, 16, 16, 5), "goal": (1, 38)})
+    shapes = jax.tree.map(lambda x: x.shape, params)
+    assert shapes == {"conv1": {"kernel": (3, 3, 5, 16), "bias": (16,)},
+                      "conv2": {"kernel": (3, 3, 16, 16), "bias": (16,)},
+                      "dense1": {"kernel": (16 * 16 * 16, 40), "bias": (40,)},
+                      "dense2": {"kernel": (40 + 38, 40), "bias": (40,)},
+                      "head": {"kernel": (40, 4), "bias": (4,)}}
+
+
+def test_greedy_act_reads_the_goal_through_the_world_function():
+    model = nets.GoalConvNet(SMALL_NET)
+    act = nets.greedy_act(model, corridor_goal)
+    assert act == nets.greedy_act(model, corridor_goal)  # hashable: one compilation
+    params = nets.init_net(model, jax.random.PRNGKey(1), SHAPES)
+    conditions = jax.vmap(corridor_condition)(jnp.arange(N))
+    tokens = jnp.full((N, 1), 2)
+    expected = jnp.argmax(model.apply({"params": params}, conditions, jax.nn.one_hot(
+        jnp.full((N,), 2), N)), -1)
+    np.testing.assert_array_equal(act(params, conditions, tokens, None), expected)
+
+
+# --------------------------------------------------------------------------------- BC
+
+def test_bc_trains_on_a_world_batch_fn_and_solves_the_corridor(tmp_path):
+    cfg = bc.BCTrainConfig(seed=1, steps=150, batch_size=64, lr=1e-2, checkpoint_every=150,
+                           log_every=50)
+    result = bc.train_bc(str(tmp_path / "bc"), corridor_bc_batch, SHAPES, cfg, SMALL_NET,
+                         data={"world": "corridor"}, progress=False)
+    assert result.last_record["accuracy"] > 0.95
+    export_params(str(tmp_path / "bc"), str(tmp_path / "ship" / "bc"))
+    policy = load_policy("bc", str(tmp_path / "ship" / "bc"), WORLD)
+    jax.tree.map(np.testing.assert_array_equal, policy.params,
+                 jax.device_get(result.state.params))
+    # The checkpoint records the goal vector's shape: the registry's checked load works too.
+    from diffplan.checkpoint import load_params_for_eval
+    _, meta = load_params_for_eval(str(tmp_path / "ship" / "bc"), SMALL_NET)
+    assert meta["input_shapes"] == {"condition": [1, 1, N, 1], "goal": [1, N]}
+    assert_solves_every_episode(*run(policy.act_fn, policy.params))
+
+
+def test_bc_refuses_to_resume_on_other_data(tmp_path):
+    from diffplan.train import ConfigMismatchError
+
+    cfg = bc.BCTrainConfig(steps=2, batch_size=8, checkpoint_every=2, log_every=1)
+    bc.train_bc(str(tmp_path), corridor_bc_batch, SHAPES, cfg, SMALL_NET,
+                data={"world": "corridor"}, progress=False)
+    with pytest.raises(ConfigMismatchError):
+        bc.train_bc(str(tmp_path), corridor_bc_batch, SHAPES, dataclasses.replace(cfg, steps=4),
+                    SMALL_NET, data={"world": "other"}, progress=False)
+
+
+# -------------------------------------------------------------------------------- CQL
 
 def _tabular_cql(alpha: float, steps: int = 400):
     """Two states; the data only ever takes action 0 in s0 (reward -1, to s1) and action 1
@@ -197,131 +249,159 @@ def test_epsilon_is_annealed_linearly_then_held():
     np.testing.assert_allclose(eps, [1.0, 0.505, 0.01, 0.01], rtol=1e-6)
 
 
-def test_route_reward_is_continuous_when_the_reference_is_reached():
-    config = make_config("p_mo2g")
-    episode = jax.tree.map(lambda x: x[0], cc.eval_episodes(config, 1, seed=5))
-    state = env.reset(episode, config)
-    at_ref = state.replace(agent=episode.reference)
-    before = cql.route_reward(at_ref, config)
-    after = cql.route_reward(at_ref.replace(reached_reference=jnp.array(True)), config)
-    assert float(before) == pytest.approx(float(after), abs=1e-6)
-    assert float(cql.route_reward(state.replace(agent=episode.target), config)) < 0  # ref due
+def test_the_collector_follows_the_behaviour_of_any_world():
+    """Two worlds (the corridor twice, counts 3 : 1) of 16 collectors: each world's share of
+    the buffer, epsilon annealed over each world's own frames, expert moves late, rewards of
+    the state reached, terminal rows, fresh episodes after the end."""
+    slow = dataclasses.replace(CORRIDOR, max_steps=4)
+    cfg = cql.CQLTrainConfig(buffer_size=1600, collectors=16, epsilon_frames=160)
+    buffer = jax.device_get(cql.collect_buffer(jax.random.PRNGKey(3),
+                                               ((CORRIDOR, 3), (slow, 1)), cfg))
+    assert buffer["action"].shape == (1600,) and buffer["action"].dtype == np.int8
+    agent = buffer["obs"].astype(int)
+    nxt = buffer["next_obs"].astype(int)
+    goal = buffer["instruction"][:, 0].astype(int)
+    np.testing.assert_array_equal(nxt, np.clip(agent + np.where(buffer["action"] == 1, 1, -1),
+                                               0, N - 1))
+    np.testing.assert_allclose(buffer["reward"], -np.abs(goal - nxt) / N)
+    np.testing.assert_array_equal(buffer["terminal"], nxt == goal)
+    expert = np.where(goal > agent, 1, 0)
+    first = 12 * 100  # world 0: 12 collectors x 100 moves, then world 1: 4 x 100
+    for lo, hi, collectors in ((0, first, 12), (first, 1600, 4)):
+        follows = buffer["action"][lo:hi] == expert[lo:hi]
+        late = np.arange(hi - lo) >= 160 + collectors  # epsilon 0.01 after 160 frames
+        assert follows[late].mean() > 0.97
+        assert follows[:collectors * 8].mean() < 0.8  # the first frames: epsilon near 1
+    assert buffer["terminal"].sum() > 100
 
 
-def test_cql_buffer_follows_the_behaviour_and_rewards():
-    cfg = cql.CQLTrainConfig(buffer_size=2000, collectors=16, epsilon_frames=1000,
-                             mixture=(("mo1g", 1),))
-    buffer = jax.device_get(cql.collect_buffer(jax.random.PRNGKey(3), cfg))
-    assert buffer["action"].shape == (2000,)
-    # Late transitions follow the expert (epsilon 0.01): the agent moves unless it stands
-    # on... never into a wall; their rewards are minus the distance left after the move.
-    agent, nxt = buffer["obs"]["agent"].astype(int), buffer["next_obs"]["agent"].astype(int)
-    moved = np.any(agent != nxt, -1)
-    late = np.arange(2000) >= 1200
-    assert moved[late].mean() > 0.97
-    assert moved[:160].mean() < 0.95  # early frames are mostly random (epsilon near 1)
-    assert np.all(buffer["reward"] <= 0)
-    assert buffer["terminal"].any() and np.all(buffer["reward"][buffer["terminal"]] == 0)
+def test_cql_trains_on_collected_transitions_and_solves_the_corridor(tmp_path):
+    cfg = cql.CQLTrainConfig(seed=2, steps=400, batch_size=64, lr=1e-2, gamma=0.9, tau=0.05,
+                             buffer_size=2048, collectors=32, epsilon_frames=512,
+                             checkpoint_every=400, log_every=100)
+    cql.train_cql(str(tmp_path / "cql"), ((CORRIDOR, 1),), q_inputs, SHAPES, cfg, SMALL_NET,
+                  data={"world": "corridor"}, progress=False)
+    export_params(str(tmp_path / "cql"), str(tmp_path / "ship" / "cql"))
+    policy = load_policy("cql", str(tmp_path / "ship" / "cql"), WORLD)
+    assert_solves_every_episode(*run(policy.act_fn, policy.params))
 
 
-# ----------------------------------------------------- every baseline, end to end (tiny)
+# ---------------------------------------------------------------------------- DD-style
 
-TINY_MIXTURE = (("1o1g", 1), ("p_mo2g", 1))
-TINY_DD = dd.DDConfig(horizon=8, widths=(8, 16), embed_dim=16, groups=4)
-
-
-@pytest.fixture(scope="module")
-def tiny_ship(tmp_path_factory):
-    """Each baseline trained a few steps with tiny settings, through train_baselines, and
-    shipped; returns (run_dir, ship_dir)."""
-    from experiments import train_baselines as tb
-
-    root = tmp_path_factory.mktemp("baselines")
-    run_dir, ship_dir = str(root / "runs"), str(root / "ship")
-    bc_cfg = bc.BCTrainConfig(steps=4, batch_size=4, mixture=TINY_MIXTURE, checkpoint_every=2,
-                              log_every=2)
-    cql_cfg = cql.CQLTrainConfig(steps=4, batch_size=8, buffer_size=256, collectors=8,
-                                 mixture=TINY_MIXTURE, checkpoint_every=2, log_every=2)
-    dd_cfg = dd.DDTrainConfig(steps=4, batch_size=2, mixture=TINY_MIXTURE, checkpoint_every=2,
-                              log_every=2, id_steps=4, id_batch_size=4)
-    tb.train_all(("bc", "cql"), run_dir, bc_cfg, cql_cfg, dd_cfg, progress=False)
-    dd.train_dd(os.path.join(run_dir, "dd", "diffusion"), dd_cfg, TINY_DD, progress=False)
-    dd.train_inverse_dynamics(os.path.join(run_dir, "dd", "inverse_dynamics"), dd_cfg,
-                              progress=False)
-    tb.ship(tb.NAMES, run_dir, ship_dir, results=[], command="pytest", remarks=["tiny"])
-    return run_dir, ship_dir, bc_cfg
+HORIZON = 4
+TOY_DD = dd.DDConfig(horizon=HORIZON, cells=N, widths=(8, 16), embed_dim=8, groups=4,
+                     head_width=16)
 
 
-def test_tiny_baselines_evaluate_through_baseline_rows(tiny_ship):
-    from experiments.baselines_eval import baseline_rows
-
-    _, ship_dir, _ = tiny_ship
-    rows = baseline_rows("p_mo2g", (7, 8), 4, 4, False, checkpoint_root=ship_dir,
-                         dd_num_steps=2)
-    assert [r["method"] for r in rows] == ["BC", "CQL", "DD-style"]
-    for row in rows:
-        assert 0.0 <= row["SR"] <= 100.0 and "SR_ordered" in row and "SR_ci95" in row
-        assert set(row["per_seed"]) == {"7", "8"}
-        for seed in ("7", "8"):
-            assert 0.0 <= row["per_seed"][seed]["SR"] <= 100.0
-    assert "plan_f1" not in rows[0] and "plan_f1" in rows[2]
-    assert rows[0]["denoiser_calls_per_episode"] == 0.0
-    assert rows[2]["denoiser_calls_per_episode"] == pytest.approx(2 * rows[2]["mean_steps"])
-    for name in ("bc", "cql", "dd"):
-        assert "tiny" in open(os.path.join(ship_dir, name, "NOTE.md")).read()
+def corridor_trajectory(start, goal):
+    """float32 (N, HORIZON): the expert's frames from start (the end repeated)."""
+    step = jnp.where(goal > start, 1, -1)
+    cells = start + step * jnp.arange(HORIZON)
+    cells = jnp.where(step * (cells - goal) > 0, goal, cells)
+    return jax.nn.one_hot(cells, N).T
 
 
-def test_baseline_rows_with_one_seed_and_the_executed_success(tiny_ship):
-    from diffplan.baselines.policies import load_policy
-    from experiments.baselines_eval import evaluate_policy
-
-    _, ship_dir, _ = tiny_ship
-    policy = load_policy("bc", os.path.join(ship_dir, "bc"))
-    task = GridTask(make_config("1o1g"))
-    episodes = cc.eval_episodes(task.config, 6, seed=9)
-    out, _ = evaluate_policy(policy, task, episodes, 9, batch_size=4, progress=False)
-    final = out.positions[np.arange(6), out.steps]
-    np.testing.assert_array_equal(np.all(final == episodes.target, -1), out.final_state.success)
-    again, _ = evaluate_policy(policy, task, episodes, 9, batch_size=6, progress=False)
-    np.testing.assert_array_equal(out.positions, again.positions)  # batching changes nothing
+def corridor_trajectories(key, batch_size):
+    eps = random_episodes(key, batch_size)
+    return (jax.vmap(corridor_trajectory)(eps["start"], eps["goal"]),
+            jax.nn.one_hot(eps["goal"], N))
 
 
-def test_a_killed_run_resumes_to_the_same_params(tiny_ship, tmp_path):
-    """The run of the fixture wrote steps 2 and 4; delete step 4, resume, compare."""
-    import shutil
-
-    run_dir, _, bc_cfg = tiny_ship
-    copy = str(tmp_path / "bc")
-    shutil.copytree(os.path.join(run_dir, "bc"), copy)
-    shutil.rmtree(os.path.join(copy, "4"))
-    resumed = bc.train_bc(copy, bc_cfg, progress=False)
-    assert int(resumed.state.step) == 4
-    from diffplan.checkpoint import load_checkpoint
-    original, _ = load_checkpoint(os.path.join(run_dir, "bc"))
-    jax.tree.map(np.testing.assert_array_equal, original["train_state"]["params"],
-                 jax.device_get(resumed.state.params))
+def corridor_id_batch(key, batch_size):
+    """(frames (B, N), next frames (B, N), expert actions (B,))."""
+    eps = random_episodes(key, batch_size)
+    traj = jax.vmap(corridor_trajectory)(eps["start"], eps["goal"])
+    return traj[..., 0], traj[..., 1], corridor_expert(eps["start"], eps["goal"])
 
 
-def test_resume_with_other_settings_is_refused(tiny_ship):
-    import dataclasses
+def test_dd_batches_drop_the_goal_and_weigh_the_changes():
+    key = jax.random.PRNGKey(0)
+    kept = dd.DDBatchFn(corridor_trajectories, p_uncond=0.0, change_weight=9.0)(key, 32)
+    dropped = dd.DDBatchFn(corridor_trajectories, p_uncond=1.0, change_weight=9.0)(key, 32)
+    traj, goals = corridor_trajectories(jax.random.split(key)[0], 32)
+    np.testing.assert_array_equal(kept.x0, traj[:, None])
+    np.testing.assert_array_equal(kept.tokens, goals)
+    assert not np.asarray(dropped.tokens).any()
+    changed = np.abs(np.asarray(traj[..., 1:] - traj[..., :1])) > 1e-6
+    np.testing.assert_array_equal(np.asarray(kept.loss_mask)[:, 0], 1 + 9 * changed)
 
-    from diffplan.train import ConfigMismatchError
 
-    run_dir, _, bc_cfg = tiny_ship
-    with pytest.raises(ConfigMismatchError):
-        bc.train_bc(os.path.join(run_dir, "bc"), dataclasses.replace(bc_cfg, lr=0.5),
-                    progress=False)
+@dataclasses.dataclass(frozen=True)
+class OracleApply:
+    """A denoiser's apply_fn that predicts (x0) the expert's frames 1.. from frame 0 and the
+    goal vector: with it the DD-style policy must take the expert's every move."""
+
+    def __call__(self, params, x_t, t, goal):
+        start = jnp.argmax(x_t[:, 0, :, 0], -1)
+        traj = jax.vmap(corridor_trajectory)(start, jnp.argmax(goal, -1))
+        return traj[:, None, :, 1:]
 
 
-def test_train_baselines_cli_refuses_bad_arguments(capsys):
-    from experiments import train_baselines as tb
+def test_dd_policy_acts_with_the_world_functions(tmp_path):
+    """The inverse dynamics trained on the corridor's consecutive frames, the oracle as the
+    diffusion model: every episode solved by shortest paths, 2 denoiser calls per move, the
+    first plan the path's cells."""
+    id_config = dd.IDConfig(hidden=(32,), num_actions=2)
+    cfg = dd.DDTrainConfig(seed=0, id_steps=200, id_batch_size=64, id_lr=1e-2,
+                           checkpoint_every=200, log_every=100)
+    result = dd.train_inverse_dynamics(str(tmp_path / "id"), corridor_id_batch, cfg, id_config,
+                                       cells=N, progress=False)
+    assert result.last_record["accuracy"] > 0.95
+    den = dd.denoiser(None, TOY_DD, "x0", 100)
+    den = den.replace(apply_fn=OracleApply())
+    policy = dd.DDPolicy(TOY_DD, corridor_goal, corridor_frame, corridor_plan,
+                         id_config=id_config, num_steps=2)
+    params = {"denoiser": den, "inverse_dynamics": result.state.params}
+    episodes, out = run(policy, params, policy.calls_per_move, plan_channels=1)
+    assert_solves_every_episode(episodes, out)
+    np.testing.assert_array_equal(out.denoiser_calls, 2 * out.steps)
+    start, goal = np.asarray(episodes["start"]), np.asarray(episodes["goal"])
+    for i in range(len(start)):
+        lo, hi = sorted((start[i], start[i] + np.sign(goal[i] - start[i]) * (HORIZON - 1)))
+        on = (np.arange(N) >= max(lo, min(start[i], goal[i]))) & (
+            np.arange(N) <= min(hi, max(start[i], goal[i])))
+        np.testing.assert_array_equal(out.first_plan[i, 0, :, 0], np.where(on, 1.0, -1.0))
 
-    for argv in (["--baselines", "bc,xyz"], ["--bc-steps", "0"], ["--remark", "hi"],
-                 ["--ship", "--results", "missing.json"], ["--seed", "-1"],
-                 ["--ship-dir", "elsewhere"], ["--no-train"]):
-        with pytest.raises(SystemExit) as e:
-            tb.main(argv)
-        assert e.value.code == 2
-    err = capsys.readouterr().err
-    assert "only make sense with --ship" in err and "cannot be read" in err
-    assert "--seed must be >= 0" in err and "does nothing" in err
+
+def test_dd_trains_on_world_trajectories_and_loads_with_the_world_goal(tmp_path):
+    """train_dd + train_inverse_dynamics on the corridor, shipped, loaded through load_policy
+    (shapes checked against the world's goal vector), one act call."""
+    cfg = dd.DDTrainConfig(steps=2, batch_size=8, checkpoint_every=2, log_every=1, id_steps=2,
+                           id_batch_size=8)
+    id_config = dd.IDConfig(hidden=(8,), num_actions=2)
+    dd.train_dd(str(tmp_path / "dd" / "diffusion"), corridor_trajectories, N, cfg, TOY_DD,
+                data={"world": "corridor"}, progress=False)
+    dd.train_inverse_dynamics(str(tmp_path / "dd" / "inverse_dynamics"), corridor_id_batch, cfg,
+                              id_config, cells=N, progress=False)
+    for part in ("diffusion", "inverse_dynamics"):
+        export_params(str(tmp_path / "dd" / part), str(tmp_path / "ship" / "dd" / part),
+                      ema=part == "diffusion")
+    policy = load_policy("dd", str(tmp_path / "ship" / "dd"), WORLD, dd_num_steps=1)
+    assert policy.plan_channels == 1 and policy.calls_per_move == 1
+    conditions = jax.vmap(corridor_condition)(jnp.array([0, 5]))
+    moves, plans = policy.act_fn(policy.params, conditions, jnp.array([[5], [0]]),
+                                 jax.random.split(jax.random.PRNGKey(0), 2))
+    assert moves.shape == (2,) and plans.shape == (2, 1, N, 1)
+    with pytest.raises(ValueError, match="does not fit"):
+        load_policy("dd", str(tmp_path / "ship" / "dd"), dataclasses.replace(WORLD, goal_dim=3))
+    with pytest.raises(ValueError, match="frame_fn"):
+        load_policy("dd", str(tmp_path / "ship" / "dd"), PolicyWorld(corridor_goal, N))
+
+
+def test_loading_never_imports_the_class_a_checkpoint_names(tmp_path, monkeypatch):
+    """A checkpoint whose metadata names a module that writes a file when imported: the
+    policy loads (its network is built from this package's config classes), the file never
+    appears."""
+    from diffplan import checkpoint as ckpt
+
+    marker = tmp_path / "imported"
+    (tmp_path / "h2_planted.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n"
+                                            "class Net:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    params = nets.init_net(nets.GoalConvNet(SMALL_NET), jax.random.PRNGKey(0), SHAPES)
+    meta = {"model_class": "h2_planted:Net", "model_config_class": "h2_planted:Net",
+            "model_config": SMALL_NET.to_dict(), "input_shapes": SHAPES}
+    ckpt.save_checkpoint(str(tmp_path / "bc"), 1, params, meta)
+    policy = load_policy("bc", str(tmp_path / "bc"), WORLD)
+    jax.tree.map(np.testing.assert_array_equal, policy.params, jax.device_get(params))
+    assert not marker.exists()

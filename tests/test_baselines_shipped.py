@@ -1,9 +1,9 @@
 """The shipped baselines (checkpoints/baselines) load and still perform, on 64 fresh episodes of
 a seed used for no choice and no reported number (4242), measured on executed trajectories.
 
-Thresholds: what the shipped checkpoints measured on these episodes (see each comment) minus a
-margin of about three standard errors of a 64-episode rate; an untrained network scores near
-0."""
+Thresholds: what the shipped checkpoints measure on these episodes, minus two episodes (the
+evaluation is deterministic: the margin only absorbs a near-tie argmax that another CPU's float
+rounding could flip); an untrained network scores near 0."""
 from __future__ import annotations
 
 import os
@@ -15,11 +15,12 @@ from experiments.baselines_eval import CHECKPOINT_DIR, baseline_rows
 
 SEED = 4242
 EPISODES = 64
-MIN_SR = {
-    # measured: BC 73.4 / 42.2 / 54.7, CQL 40.6 / 23.4 / 46.9 (1o1g / mo1g / p_mo2g)
-    "bc": {"1o1g": 55.0, "mo1g": 25.0, "p_mo2g": 35.0},
-    "cql": {"1o1g": 25.0, "mo1g": 10.0, "p_mo2g": 28.0},
+MEASURED_SUCCESSES = {  # of 64: SR 73.4 / 42.2 / 54.7 (BC), 40.6 / 23.4 / 46.9 (CQL)
+    "bc": {"1o1g": 47, "mo1g": 27, "p_mo2g": 35},
+    "cql": {"1o1g": 26, "mo1g": 15, "p_mo2g": 30},
 }
+MARGIN = 2
+"""Episodes fewer than measured that the thresholds allow."""
 
 
 @pytest.mark.parametrize("name", BASELINES)
@@ -30,18 +31,40 @@ def test_shipped_baseline_has_a_note_with_its_provenance(name):
         assert needle in note, needle
 
 
+def test_shipped_baselines_load_without_importing_what_their_metadata_names():
+    """Their metadata name the classes where they lived when trained
+    ("diffplan.baselines.common:GoalConvNet", a module that no longer exists) and the
+    instruction's token shape; the loader builds the networks from this package's config
+    classes and the world's goal vector, and the parameters fit."""
+    import importlib.util
+
+    from diffplan.baselines.policies import load_policy
+    from diffplan.checkpoint import read_metadata
+    from envs.gridworld.baselines import POLICY_WORLD
+
+    assert importlib.util.find_spec("diffplan.baselines.common") is None
+    for name in ("bc", "cql"):
+        meta = read_metadata(os.path.join(CHECKPOINT_DIR, name))
+        assert meta["model_class"] == "diffplan.baselines.common:GoalConvNet"
+        assert meta["input_shapes"]["tokens"] == [1, 24]
+    for name in BASELINES:
+        load_policy(name, os.path.join(CHECKPOINT_DIR, name), POLICY_WORLD)
+
+
 @pytest.mark.parametrize("setting", ["1o1g", "mo1g", "p_mo2g"])
 def test_shipped_bc_and_cql_still_perform(setting):
     rows = baseline_rows(setting, (SEED,), EPISODES, EPISODES, False, methods=("bc", "cql"))
     for name, row in zip(("bc", "cql"), rows):
-        assert row["SR"] >= MIN_SR[name][setting], (name, setting, row)
+        assert row["SR"] >= 100 * (MEASURED_SUCCESSES[name][setting] - MARGIN) / EPISODES, (
+            name, setting, row)
 
 
 def test_shipped_dd_still_plans():
     """DD-style fails at the task, as the paper's DD does (its SR is a few percent: see its
-    NOTE.md), so SR cannot guard it; its first sampled trajectory can: measured plan F1 12.4
-    and executed path F1 26.4 (p_mo2g, these 64 episodes); a network that lost its training
-    samples noise, and its plan (cells with the agent's marker in any frame) covers the grid."""
+    NOTE.md), so SR cannot guard it; its first sampled trajectory can: measured plan F1 12.39
+    and executed path F1 26.38 (p_mo2g, these 64 episodes; SR 4.7, 3 episodes); a network that
+    lost its training samples noise, and its plan (cells with the agent's marker in any frame)
+    covers the grid."""
     (row,) = baseline_rows("p_mo2g", (SEED,), EPISODES, EPISODES, False, methods=("dd",))
-    assert row["plan_f1"] >= 8.0 and row["path_f1"] >= 15.0, row
+    assert row["plan_f1"] >= 11.0 and row["path_f1"] >= 24.0, row
     assert row["denoiser_calls_per_episode"] > 0

@@ -1,62 +1,49 @@
 """Behaviour cloning (the paper's BC baseline, appendix): the conv network of
-:class:`diffplan.baselines.common.GoalConvNet` learns the expert's move (cross-entropy) in the
-states along expert shortest paths (the A* paths of the paper: ``Episode.expert_positions``,
-the field of view accumulated along the way), in the planner's mixture of settings; Adam, lr
-1e-3 (the appendix's learning rate). It acts greedily (argmax of its logits).
+:class:`diffplan.baselines.nets.GoalConvNet` learns the expert's action (cross-entropy) on
+batches of (condition, goal vector, expert action) that the world draws (e.g. the states along
+the grid world's expert shortest paths, ``envs.gridworld.baselines.bc_batch``); Adam, lr 1e-3
+(the appendix's learning rate). It acts greedily (argmax of its logits,
+:func:`diffplan.baselines.nets.greedy_act`).
 """
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
 import optax
 
-from diffplan.baselines import common
-from diffplan.baselines.loop import fit, run_metadata
-from diffplan.train import TrainState
-from envs.gridworld import grammar
-from envs.gridworld.task import NUM_COND_CHANNELS, condition_from_observation
-from envs.gridworld import env
+from diffplan.baselines import nets
+from diffplan.train import TrainState, fit, run_metadata
 
-__all__ = ["BCTrainConfig", "bc_batch", "bc_loss", "make_bc_step", "train_bc", "act_fn"]
+__all__ = ["BCTrainConfig", "bc_loss", "make_bc_step", "train_bc"]
 
 
 @dataclasses.dataclass(frozen=True)
 class BCTrainConfig:
-    """seed, steps, batch_size (a multiple of the mixture's sum), lr (Adam), the mixture of
-    settings ((setting, count) per sum(counts) examples), checkpoint_every / log_every."""
+    """seed, steps, batch_size, lr (Adam), checkpoint_every / log_every. What the batches hold
+    (e.g. the grid world's mixture of settings) is the world's, recorded beside these."""
 
     seed: int = 0
     steps: int = 10000
     batch_size: int = 128
     lr: float = 1e-3
-    mixture: tuple = common.TRAINING_MIXTURE
     checkpoint_every: int = 2000
     log_every: int = 100
 
 
-def _example(key, config):
-    episode, state, _, move = common.expert_example(key, config)
-    condition = condition_from_observation(env.observe(state, config))
-    return condition, episode.tokens, move
+def bc_loss(params, model, conditions, goals, actions):
+    """(mean cross-entropy of the model's action logits against the expert actions int32 (B,),
+    accuracy) for conditions (B, H, W, C) and goal vectors (B, G)."""
+    logits = model.apply({"params": params}, conditions, goals)
+    loss = optax.softmax_cross_entropy_with_integer_labels(logits, actions).mean()
+    return loss, jnp.mean(jnp.argmax(logits, -1) == actions)
 
 
-def bc_batch(key, batch_size: int, mixture=common.TRAINING_MIXTURE):
-    """(conditions float32 (B, 16, 16, 5), tokens int32 (B, L), expert moves int32 (B,))."""
-    return common.mixture_examples(_example, key, batch_size, mixture)
-
-
-def bc_loss(params, model, conditions, tokens, moves):
-    """Mean cross-entropy of the model's move logits against the expert moves, and accuracy."""
-    logits = model.apply({"params": params}, conditions, tokens)
-    loss = optax.softmax_cross_entropy_with_integer_labels(logits, moves).mean()
-    return loss, jnp.mean(jnp.argmax(logits, -1) == moves)
-
-
-def make_bc_step(model, optimizer, batch_fn):
-    """step(state, key, data) -> (state, metrics): one Adam step on batch_fn(key) =
-    (conditions, tokens, moves) (data unused)."""
+def make_bc_step(model, optimizer, batch_fn: Callable):
+    """step(state, key, data) -> (state, metrics): one optimizer step on batch_fn(key) =
+    (conditions, goals, actions) (data unused)."""
 
     def step(state: TrainState, key, data):
         del data
@@ -71,31 +58,22 @@ def make_bc_step(model, optimizer, batch_fn):
     return step
 
 
-def init_state(model, optimizer, seed: int) -> TrainState:
-    params = common.init_net(model, jax.random.PRNGKey(seed))
-    return TrainState(params=params, ema_params=params, opt_state=optimizer.init(params),
-                      step=jnp.zeros((), jnp.int32))
+def train_bc(out_dir: str, batch_fn: Callable, input_shapes: Mapping[str, tuple],
+             config: BCTrainConfig = BCTrainConfig(),
+             net: nets.ConvNetConfig = nets.ConvNetConfig(), *, data: Mapping | None = None,
+             progress: bool = True):
+    """Trains BC into out_dir (resuming); returns diffplan.train.FitResult.
 
-
-def input_shapes(size: int = 16) -> dict:
-    return {"condition": [1, size, size, NUM_COND_CHANNELS], "tokens": [1, grammar.MAX_TOKENS]}
-
-
-def train_bc(out_dir: str, config: BCTrainConfig = BCTrainConfig(),
-             net: common.ConvNetConfig = common.ConvNetConfig(), progress: bool = True):
-    """Trains BC into out_dir (resuming); returns diffplan.baselines.loop.FitResult."""
-    model = common.GoalConvNet(net)
+    batch_fn(key, batch_size) -> (conditions (B, H, W, C), goals (B, G), actions int32 (B,)):
+    the world's expert examples. input_shapes: {"condition": (1, H, W, C), "goal": (1, G)}.
+    data: the world's description of the batches, stored in the run's train config (a run of
+    other data refuses to resume)."""
+    model = nets.GoalConvNet(net)
     optimizer = optax.adam(config.lr)
-    metadata = run_metadata(model, net, common.config_dict(config), input_shapes(),
+    metadata = run_metadata(model, net, nets.config_dict(config, data), dict(input_shapes),
                             {"baseline": "bc"})
-    step = make_bc_step(model, optimizer,
-                        lambda key: bc_batch(key, config.batch_size, config.mixture))
-    return fit(step, lambda: init_state(model, optimizer, config.seed), steps=config.steps,
-               seed=config.seed, out_dir=out_dir, metadata=metadata,
+    step = make_bc_step(model, optimizer, lambda key: batch_fn(key, config.batch_size))
+    return fit(step, lambda: nets.init_state(model, optimizer, config.seed, input_shapes),
+               steps=config.steps, seed=config.seed, out_dir=out_dir, metadata=metadata,
                checkpoint_every=config.checkpoint_every, log_every=config.log_every,
                progress=progress, desc="BC")
-
-
-def act_fn(net: common.ConvNetConfig = common.ConvNetConfig()):
-    """The greedy policy of a BC network (for policy_rollout)."""
-    return common.greedy_act(common.GoalConvNet(net))

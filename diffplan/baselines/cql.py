@@ -1,47 +1,39 @@
 """Conservative Q-learning (the paper's CQL baseline, appendix), offline, on top of double DQN.
 
 Data: a replay buffer of ``buffer_size`` (300k) transitions collected once, before training,
-by an epsilon-greedy behaviour around the expert: with probability 1 - epsilon the expert's
-move (the first move of a shortest path on the true grid through the reference, while it is
-still due, to the target), else a uniformly random move; epsilon is annealed linearly from 1
-to 0.01 over the first 10k frames (env steps, counted over all parallel collectors of a
-setting) and then held. Episodes that end are replaced by fresh ones of the training key
-stream. The settings are collected in the planner's mixture proportions.
+by an epsilon-greedy behaviour around the world's expert: with probability 1 - epsilon the
+expert's action, else a uniformly random one; epsilon is annealed linearly from 1 to 0.01 over
+the first 10k frames (env steps, counted over all parallel collectors of a world) and then
+held. Episodes that end are replaced by fresh ones of the world's training stream. Several
+worlds (e.g. the grid world's settings) are collected in fixed proportions.
 
-Reward (appendix: "the distance from the agent to the goal", negated): after each move,
-minus the Euclidean length, in cells / grid size, of the instructed route that remains: agent
-to target, or in P-MO2G, while the reference has not been stood on, agent to reference plus
-reference to target (so stepping on the reference is not punished by a jump of the distance).
-An episode terminates on the target (no bootstrap); running out of moves is a truncation.
+The world comes as a :class:`Collector`, per-episode pure functions (vmapped here): what a
+transition stores (``observe``, ``instruction``), the expert, the reward and the ends of an
+episode. The grid world's is ``envs.gridworld.baselines.GridCollector`` (the expert's
+shortest-path move, minus the instructed route still to go as the reward).
 
 Loss: the double-DQN Huber TD error, target ``r + gamma (1 - terminal) Q_target(s',
 argmax_a Q(s', a))``, plus ``alpha * E[logsumexp_a Q(s, a) - Q(s, a_data)]`` (CQL(H), Kumar et
 al. 2020); Adam lr 1e-3, gamma 0.99, the target network soft-updated with tau 0.001 after every
-step (appendix). The network is the appendix's conv net with 4 Q-value outputs; it acts
+step (appendix). The network is the appendix's conv net with one Q-value per action; it acts
 greedily.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import jax
 import jax.numpy as jnp
 import optax
 
 from diffplan import checkpoint as ckpt
-from diffplan.baselines import common
-from diffplan.baselines.bc import init_state, input_shapes
-from diffplan.baselines.loop import fit, run_metadata
-from diffplan.train import TrainState
-from envs.gridworld import bfs, env
-from envs.gridworld.config import make_config
-from envs.gridworld.episode import OBSTACLE_CELL, generate
-from envs.gridworld.task import condition_from_observation
-from envs.gridworld.training import training_episode_keys
+from diffplan.baselines import nets
+from diffplan.train import TrainState, fit, run_metadata
 
-__all__ = ["CQLTrainConfig", "epsilon_at", "expert_move", "route_reward", "collect_buffer",
-           "cql_loss", "make_cql_step", "train_cql", "act_fn"]
+__all__ = ["CQLTrainConfig", "Collector", "epsilon_at", "collect", "collect_buffer",
+           "as_q_batch", "network_q_fn", "cql_loss", "make_cql_step", "train_cql"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,9 +54,42 @@ class CQLTrainConfig:
     epsilon_end: float = 0.01
     epsilon_frames: int = 10_000
     collectors: int = 256
-    mixture: tuple = common.TRAINING_MIXTURE
     checkpoint_every: int = 2000
     log_every: int = 100
+
+
+class Collector(Protocol):
+    """A world for the epsilon-greedy collection (hashable: a static argument of the compiled
+    collection). Every method but ``episodes`` acts on ONE episode / state."""
+
+    num_actions: int
+
+    def episodes(self, key, n: int) -> Any:
+        """n fresh training episodes (leading axis n) from key."""
+
+    def reset(self, episode) -> Any:
+        """The state at t = 0."""
+
+    def instruction(self, episode) -> Any:
+        """What a transition stores of the instruction (e.g. token ids)."""
+
+    def step(self, state, action) -> Any:
+        """The state after an action int32 ()."""
+
+    def observe(self, state) -> Any:
+        """What a transition stores of a state (a compact observation pytree)."""
+
+    def expert_action(self, state) -> jax.Array:
+        """int32 (): the expert's action."""
+
+    def reward(self, state) -> jax.Array:
+        """float32 (): the reward of arriving in state."""
+
+    def terminal(self, state) -> jax.Array:
+        """bool (): the episode ended in a way that stops bootstrapping (success)."""
+
+    def done(self, state) -> jax.Array:
+        """bool (): the episode is over (terminal or out of time)."""
 
 
 def epsilon_at(frame, start: float = 1.0, end: float = 0.01, frames: int = 10_000):
@@ -73,103 +98,85 @@ def epsilon_at(frame, start: float = 1.0, end: float = 0.01, frames: int = 10_00
     return start + (end - start) * frac
 
 
-def _sub_goal(state: env.State, config):
-    """The cell the instruction asks for next: the reference until stood on, then the
-    target."""
-    if not config.has_reference:
-        return state.target
-    return jnp.where(state.reached_reference, state.target, state.reference)
+def _where_done(done, fresh, old):
+    return jax.tree.map(lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
+                        fresh, old)
 
 
-def expert_move(state: env.State, config):
-    """int32 (): the first move of a shortest path on the true grid to the sub-goal."""
-    passable = state.grid != OBSTACLE_CELL
-    field = bfs.cost_to_go(passable, _sub_goal(state, config))
-    return bfs.best_move(field, passable, state.agent)
-
-
-def route_reward(state: env.State, config):
-    """float32 (): minus the Euclidean length (cells / size) of the route still to go."""
-    def dist(a, b):
-        return jnp.sqrt(jnp.sum(jnp.square((a - b).astype(jnp.float32))))
-
-    remaining = dist(state.agent, state.target)
-    if config.has_reference:
-        via = dist(state.agent, state.reference) + dist(state.reference, state.target)
-        remaining = jnp.where(state.reached_reference, remaining, via)
-    return -remaining / config.size
-
-
-def _compact(obs: env.Observation):
-    """The observation stored in the buffer: cells int8, visited bool, agent int8."""
-    return {"cells": obs.cells, "visited": obs.visited, "agent": obs.agent.astype(jnp.int8)}
-
-
-def expand(compact) -> jax.Array:
-    """float32 (..., H, W, C) condition channels of stored observations."""
-    obs = env.Observation(cells=compact["cells"], visited=compact["visited"],
-                          agent=compact["agent"].astype(jnp.int32))
-    return condition_from_observation(obs)
-
-
-def _collect_setting(key, config, collectors: int, moves: int, cfg: CQLTrainConfig):
-    """Transitions (moves, collectors, ...) of one setting (its own epsilon schedule: frame
+def _collect(key, world: Collector, collectors: int, moves: int, cfg: CQLTrainConfig):
+    """Transitions (moves, collectors, ...) of one world (its own epsilon schedule: frame
     f = move * collectors + collector)."""
-    v_generate = jax.vmap(lambda k: generate(k, config))
-    v_reset = jax.vmap(lambda e: env.reset(e, config))
-    v_step = jax.vmap(lambda s, a: env.step(s, a, config))
-    v_observe = jax.vmap(lambda s: _compact(env.observe(s, config)))
-    episodes = v_generate(training_episode_keys(jax.random.fold_in(key, 0), collectors))
-    states = v_reset(episodes)
+    v = jax.vmap
+    episodes = world.episodes(jax.random.fold_in(key, 0), collectors)
+    states = v(world.reset)(episodes)
 
     def body(carry, t):
-        states, tokens = carry
+        states, instructions = carry
         k_explore, k_action, k_new = jax.random.split(jax.random.fold_in(key, t + 1), 3)
         frame = t * collectors + jnp.arange(collectors)
         eps = epsilon_at(frame, cfg.epsilon_start, cfg.epsilon_end, cfg.epsilon_frames)
         explore = jax.random.uniform(k_explore, (collectors,)) < eps
-        random_moves = jax.random.randint(k_action, (collectors,), 0, 4)
-        moves_ = jnp.where(explore, random_moves,
-                           jax.vmap(lambda s: expert_move(s, config))(states))
-        nxt = v_step(states, moves_)
-        record = {"obs": v_observe(states), "next_obs": v_observe(nxt),
-                  "tokens": tokens.astype(jnp.int8), "action": moves_.astype(jnp.int8),
-                  "reward": jax.vmap(lambda s: route_reward(s, config))(nxt),
-                  "terminal": nxt.success}
-        fresh = v_generate(training_episode_keys(k_new, collectors))
-        states = jax.tree.map(
-            lambda a, b: jnp.where(nxt.done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
-            v_reset(fresh), nxt)
-        tokens = jnp.where(nxt.done[:, None], fresh.tokens, tokens)
-        return (states, tokens), record
+        random_actions = jax.random.randint(k_action, (collectors,), 0, world.num_actions)
+        actions = jnp.where(explore, random_actions, v(world.expert_action)(states))
+        nxt = v(world.step)(states, actions)
+        record = {"obs": v(world.observe)(states), "next_obs": v(world.observe)(nxt),
+                  "instruction": instructions, "action": actions.astype(jnp.int8),
+                  "reward": v(world.reward)(nxt), "terminal": v(world.terminal)(nxt)}
+        fresh = world.episodes(k_new, collectors)
+        done = v(world.done)(nxt)
+        states = _where_done(done, v(world.reset)(fresh), nxt)
+        instructions = _where_done(done, v(world.instruction)(fresh), instructions)
+        return (states, instructions), record
 
-    _, records = jax.lax.scan(body, (states, episodes.tokens), jnp.arange(moves))
+    carry = (states, v(world.instruction)(episodes))
+    _, records = jax.lax.scan(body, carry, jnp.arange(moves))
     return records
 
 
-_collect_jit = jax.jit(_collect_setting, static_argnums=(1, 2, 3, 4))
+collect = jax.jit(_collect, static_argnums=(1, 2, 3, 4))
+"""collect(key, world, collectors, moves, cfg) -> transitions (moves, collectors, ...) of one
+world, jitted (world, collectors, moves and cfg static)."""
 
 
-def collect_buffer(key, cfg: CQLTrainConfig = CQLTrainConfig()):
+def collect_buffer(key, worlds: Sequence[tuple[Collector, int]],
+                   cfg: CQLTrainConfig = CQLTrainConfig()):
     """The replay buffer: a dict of arrays with a leading axis of cfg.buffer_size transitions
-    (obs / next_obs compact observations, tokens int8 (L,), action int8, reward float32,
-    terminal bool). Settings are collected in the mixture's proportions, collectors split
-    alike (each setting anneals epsilon over its own first epsilon_frames frames); a pure
-    function of key and cfg."""
-    total = sum(count for _, count in cfg.mixture)
+    (obs / next_obs as the world observes them, instruction, action int8, reward float32,
+    terminal bool). worlds: (collector, count) pairs, collected in the counts' proportions,
+    cfg.collectors split alike (each world anneals epsilon over its own first epsilon_frames
+    frames; world i collects with fold_in(key, i)); a pure function of key, worlds and cfg."""
+    if any(world.num_actions > 127 for world, _ in worlds):
+        raise ValueError("the buffer stores actions as int8: at most 127 actions")
+    total = sum(count for _, count in worlds)
     moves = math.ceil(cfg.buffer_size / cfg.collectors)
     parts = []
-    for i, (setting, count) in enumerate(cfg.mixture):
+    for i, (world, count) in enumerate(worlds):
         collectors = max(1, round(cfg.collectors * count / total))
-        records = _collect_jit(jax.random.fold_in(key, i), make_config(setting), collectors,
-                               moves, cfg)
+        records = collect(jax.random.fold_in(key, i), world, collectors, moves, cfg)
         parts.append(jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), records))
     buffer = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
     n = jax.tree.leaves(buffer)[0].shape[0]
-    if n > cfg.buffer_size:  # drop evenly spaced surplus rows so every setting keeps its share
+    if n > cfg.buffer_size:  # drop evenly spaced surplus rows so every world keeps its share
         keep = jnp.round(jnp.linspace(0, n - 1, cfg.buffer_size)).astype(jnp.int32)
         buffer = jax.tree.map(lambda x: x[keep], buffer)
     return buffer
+
+
+def as_q_batch(buffer):
+    """The buffer with obs / next_obs as Q-function observations {"obs", "instruction"} (the
+    instruction's arrays shared, not copied)."""
+    out = {k: v for k, v in buffer.items() if k != "instruction"}
+    out["obs"] = {"obs": buffer["obs"], "instruction": buffer["instruction"]}
+    out["next_obs"] = {"obs": buffer["next_obs"], "instruction": buffer["instruction"]}
+    return out
+
+
+def network_q_fn(model, inputs_fn: Callable):
+    """q_fn(params, obs) of a (condition, goal) network on Q-function observations:
+    inputs_fn(obs, instruction) -> (conditions (B, H, W, C), goals (B, G)) is the world's."""
+    def q_fn(params, obs):
+        return model.apply({"params": params}, *inputs_fn(obs["obs"], obs["instruction"]))
+    return q_fn
 
 
 def cql_loss(q_fn, params, target_params, batch, gamma: float, alpha: float):
@@ -214,46 +221,33 @@ def make_cql_step(q_fn, optimizer, batch_size: int, gamma: float, alpha: float, 
     return step
 
 
-def grid_q_fn(model):
-    """q_fn(params, obs) of the conv network on buffer observations {"obs": compact,
-    "tokens"}."""
-    def q_fn(params, obs):
-        return model.apply({"params": params}, expand(obs["compact"]),
-                           obs["tokens"].astype(jnp.int32))
-    return q_fn
+BUFFER_STREAM = 0x0C01
+"""The buffer of a run is collect_buffer(fold_in(PRNGKey(seed), BUFFER_STREAM), ...)."""
 
 
-def _as_q_batch(buffer):
-    """The buffer with obs / next_obs as q_fn observations (compact arrays + tokens)."""
-    out = dict(buffer)
-    out["obs"] = {"compact": buffer["obs"], "tokens": buffer["tokens"]}
-    out["next_obs"] = {"compact": buffer["next_obs"], "tokens": buffer["tokens"]}
-    del out["tokens"]
-    return out
+def train_cql(out_dir: str, worlds: Sequence[tuple[Collector, int]], inputs_fn: Callable,
+              input_shapes: Mapping[str, tuple], config: CQLTrainConfig = CQLTrainConfig(),
+              net: nets.ConvNetConfig = nets.ConvNetConfig(), *, data: Mapping | None = None,
+              progress: bool = True, buffer=None):
+    """Collects the buffer (a pure function of config.seed: rebuilt identically on resume;
+    not collected when the run is finished) and trains CQL into out_dir (resuming). Returns
+    diffplan.train.FitResult.
 
-
-def train_cql(out_dir: str, config: CQLTrainConfig = CQLTrainConfig(),
-              net: common.ConvNetConfig = common.ConvNetConfig(), progress: bool = True,
-              buffer=None):
-    """Collects the buffer (a pure function of config.seed: rebuilt identically on resume)
-    and trains CQL into out_dir (resuming). Returns diffplan.baselines.loop.FitResult."""
-    model = common.GoalConvNet(net)
+    worlds, inputs_fn: see collect_buffer and network_q_fn. input_shapes: {"condition":
+    (1, H, W, C), "goal": (1, G)}. data: the world's description of the buffer's worlds,
+    stored in the run's train config. buffer: an already collected buffer (collect_buffer's)."""
+    model = nets.GoalConvNet(net)
     optimizer = optax.adam(config.lr)
-    metadata = run_metadata(model, net, common.config_dict(config), input_shapes(),
+    metadata = run_metadata(model, net, nets.config_dict(config, data), dict(input_shapes),
                             {"baseline": "cql"})
     finished = (ckpt.latest_step(out_dir) or 0) >= config.steps
     if buffer is None and not finished:
-        buffer = collect_buffer(jax.random.fold_in(jax.random.PRNGKey(config.seed), 0x0C01),
-                                config)
-    step = make_cql_step(grid_q_fn(model), optimizer, config.batch_size, config.gamma,
-                         config.alpha, config.tau)
-    return fit(step, lambda: init_state(model, optimizer, config.seed), steps=config.steps,
-               seed=config.seed, out_dir=out_dir, metadata=metadata,
-               data=None if buffer is None else _as_q_batch(buffer),
+        buffer = collect_buffer(jax.random.fold_in(jax.random.PRNGKey(config.seed),
+                                                   BUFFER_STREAM), worlds, config)
+    step = make_cql_step(network_q_fn(model, inputs_fn), optimizer, config.batch_size,
+                         config.gamma, config.alpha, config.tau)
+    return fit(step, lambda: nets.init_state(model, optimizer, config.seed, input_shapes),
+               steps=config.steps, seed=config.seed, out_dir=out_dir, metadata=metadata,
+               data=None if buffer is None else as_q_batch(buffer),
                checkpoint_every=config.checkpoint_every, log_every=config.log_every,
                progress=progress, desc="CQL")
-
-
-def act_fn(net: common.ConvNetConfig = common.ConvNetConfig()):
-    """The greedy policy of a CQL Q-network (for policy_rollout)."""
-    return common.greedy_act(common.GoalConvNet(net))

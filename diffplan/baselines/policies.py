@@ -1,6 +1,11 @@
 """The trained baselines as policies for :func:`diffplan.baselines.rollout.policy_rollout`:
 shipping (training run -> small evaluation checkpoint) and loading.
 
+What is specific to a world (the goal vector of an instruction, the DD-style planner's frame
+and plan) comes as a :class:`PolicyWorld` (the grid world's is
+``envs.gridworld.baselines.POLICY_WORLD``). The networks are built from the config classes of
+this package, never from a class that a checkpoint's metadata names.
+
 Layout of a shipped baseline (``checkpoints/baselines/<name>/``): ``bc/`` and ``cql/`` are
 evaluation checkpoints (``diffplan.checkpoint``: the trained network's parameters -- for CQL the
 online Q-network, not the target -- and the run's metadata); ``dd/diffusion/`` holds the
@@ -11,19 +16,36 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from diffplan import checkpoint as ckpt
-from diffplan.baselines import common, dd
+from diffplan.baselines import dd, nets
 
-__all__ = ["BASELINES", "METHOD_NAMES", "LoadedPolicy", "load_policy", "export_params"]
+__all__ = ["BASELINES", "METHOD_NAMES", "PolicyWorld", "LoadedPolicy", "load_policy",
+           "export_params"]
 
 BASELINES = ("bc", "cql", "dd")
 METHOD_NAMES = {"bc": "BC", "cql": "CQL", "dd": "DD-style"}
 DD_PARTS = ("diffusion", "inverse_dynamics")
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyWorld:
+    """What the trained baselines need of a world to act in it (hashable: module-level
+    functions). goal_fn(tokens (B, L)) -> goal vectors float32 (B, goal_dim); for the DD-style
+    planner frame_fn(condition (H, W, C)) -> frame (cells,) and, for its plan metrics,
+    plan_fn(trajectory (cells, horizon), condition) -> plan (H, W, plan_channels) (None: no
+    plan)."""
+
+    goal_fn: Callable
+    goal_dim: int
+    frame_fn: Optional[Callable] = None
+    plan_fn: Optional[Callable] = None
+    plan_channels: Optional[int] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,36 +89,40 @@ def _load_checked(directory: str, model, example_args) -> tuple[Any, dict]:
     return params, metadata
 
 
-def load_policy(name: str, directory: str, *, dd_num_steps: int = 10,
+def load_policy(name: str, directory: str, world: PolicyWorld, *, dd_num_steps: int = 10,
                 dd_guidance: float = 1.0) -> LoadedPolicy:
-    """The shipped baseline ``name`` (one of BASELINES) from its directory. Raises
-    FileNotFoundError when there is no checkpoint, ValueError when it does not fit."""
-    import jax.numpy as jnp
+    """The shipped baseline ``name`` (one of BASELINES) from its directory, acting in world.
+    Raises FileNotFoundError when there is no checkpoint, ValueError when it does not fit.
 
+    The networks' shapes are checked against an init on zeros of the checkpoint's condition
+    shape and the world's goal vector; the ``input_shapes["tokens"]`` that checkpoints written
+    before the goal vector left the networks carry (the instruction's shape) is not used."""
     if name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}; expected one of {BASELINES}")
+    goal = jnp.zeros((1, world.goal_dim), jnp.float32)
     if name in ("bc", "cql"):
         meta = ckpt.read_metadata(directory)
-        net = common.ConvNetConfig.from_dict(meta["model_config"])
-        model = common.GoalConvNet(net)
-        shapes = meta["input_shapes"]
-        params, _ = _load_checked(directory, model,
-                                  (jnp.zeros(shapes["condition"], jnp.float32),
-                                   jnp.zeros(shapes["tokens"], jnp.int32)))
-        return LoadedPolicy(METHOD_NAMES[name], common.greedy_act(model), params)
+        model = nets.GoalConvNet(nets.ConvNetConfig.from_dict(meta["model_config"]))
+        condition = jnp.zeros(meta["input_shapes"]["condition"], jnp.float32)
+        params, _ = _load_checked(directory, model, (condition, goal))
+        return LoadedPolicy(METHOD_NAMES[name], nets.greedy_act(model, world.goal_fn), params)
+    if world.frame_fn is None:
+        raise ValueError("the DD-style planner needs the world's frame_fn; this world gives none")
     diffusion_dir, id_dir = (os.path.join(directory, part) for part in DD_PARTS)
     meta = ckpt.read_metadata(diffusion_dir)
     model_config = dd.DDConfig.from_dict(meta["model_config"])
-    diffusion_params, _ = ckpt.load_params_for_eval(diffusion_dir, model_config)
+    x = jnp.zeros((1, 1, model_config.cells, model_config.horizon), jnp.float32)
+    diffusion_params, _ = _load_checked(diffusion_dir, dd.DDModel(model_config),
+                                        (x, jnp.zeros((1,), jnp.int32), goal))
     train_config = meta["train_config"]
     den = dd.denoiser(diffusion_params, model_config, train_config["prediction"],
                       int(train_config["num_train_timesteps"]))
-    id_meta = ckpt.read_metadata(id_dir)
-    id_config = dd.IDConfig.from_dict(id_meta["model_config"])
+    id_config = dd.IDConfig.from_dict(ckpt.read_metadata(id_dir)["model_config"])
     z = jnp.zeros((1, model_config.cells), jnp.float32)
     id_params, _ = _load_checked(id_dir, dd.InverseDynamics(id_config), (z, z))
-    policy = dd.DDPolicy(model_config, id_config, num_steps=dd_num_steps,
-                         guidance=dd_guidance)
+    policy = dd.DDPolicy(model_config, world.goal_fn, world.frame_fn, world.plan_fn,
+                         id_config=id_config, num_steps=dd_num_steps, guidance=dd_guidance)
     return LoadedPolicy(METHOD_NAMES[name], policy,
                         {"denoiser": den, "inverse_dynamics": id_params},
-                        calls_per_move=policy.calls_per_move, plan_channels=1)
+                        calls_per_move=policy.calls_per_move,
+                        plan_channels=None if world.plan_fn is None else world.plan_channels)

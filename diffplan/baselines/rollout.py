@@ -1,12 +1,13 @@
 """The baselines' evaluation loop: a policy acts in the world exactly as our planner's agent
 does (``task.reset``, ``task.step`` with collisions, at most ``task.max_steps`` moves), and the
 result is the same :class:`diffplan.rollouts.Rollout`, built with the helpers of
-``diffplan.rollouts``, so ``experiments.compile_common.metrics_row`` measures both alike on the
-executed trajectories.
+``diffplan.rollouts``, so a world's evaluation measures both alike on the executed
+trajectories.
 
 A policy is ``act_fn(params, conditions, tokens, keys)`` over a batch of B episodes:
 conditions float32 (B, H, W, C) = ``task.condition`` of each state (what the agent has seen),
-tokens int32 (B, L) the instructions, keys (B,) the episodes' keys of this move
+tokens int32 (B, L) the instructions (``task.tokens``: a policy turns them into what its network
+reads, e.g. the world's goal vector), keys (B,) the episodes' keys of this move
 (``fold_in(keys[i], move)``); it returns the moves int32 (B,), or (moves, plans float32
 (B, H, W, G)) for a policy that plans (the plan of the first move is kept as ``first_plan``, the
 paper's plan metrics). The loop never gives a policy anything but these.

@@ -1,0 +1,116 @@
+"""The appendix's network of BC and CQL, and what every baseline's training and acting shares.
+
+The network sees what the planner's agent sees, the world's condition channels (B, H, W, C),
+and the instruction as a goal vector (B, G) that the world computes from it (the paper gives
+BC and CQL "the goal" as a one-hot vector; e.g. ``envs.gridworld.baselines.goal_vector``).
+Nothing here knows a world: shapes come from the caller. The network is registered in
+``diffplan.models`` (the key of checkpoints written when it lived in ``common.py`` is an alias).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Mapping
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from diffplan import models
+from diffplan.train import TrainState
+
+__all__ = ["ConvNetConfig", "GoalConvNet", "init_net", "init_state", "greedy_act",
+           "GreedyAct", "config_dict"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ConvNetConfig:
+    """The appendix's network of BC and CQL: two 3x3 conv layers of ``channels`` (ReLU), then
+    two dense layers of ``hidden`` units (ReLU) with the goal vector concatenated to the first
+    one's output, i.e. before the last of the two, then a linear head of ``num_outputs`` (action
+    logits for BC, Q-values for CQL)."""
+
+    channels: int = 16
+    hidden: int = 40
+    num_outputs: int = 4
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d) -> "ConvNetConfig":
+        return cls(**dict(d))
+
+
+class GoalConvNet(nn.Module):
+    """(condition float32 (B, H, W, C), goal vector float32 (B, G)) -> (B, num_outputs)."""
+
+    config: ConvNetConfig
+
+    @nn.compact
+    def __call__(self, condition, goal):
+        cfg = self.config
+        x = condition.astype(jnp.float32)
+        x = nn.relu(nn.Conv(cfg.channels, (3, 3), name="conv1")(x))
+        x = nn.relu(nn.Conv(cfg.channels, (3, 3), name="conv2")(x))
+        x = x.reshape(x.shape[0], -1)
+        x = nn.relu(nn.Dense(cfg.hidden, name="dense1")(x))
+        x = jnp.concatenate([x, goal.astype(jnp.float32)], axis=-1)
+        x = nn.relu(nn.Dense(cfg.hidden, name="dense2")(x))
+        return nn.Dense(cfg.num_outputs, name="head")(x)
+
+
+def conv_net_inputs(input_shapes: Mapping[str, tuple]) -> tuple:
+    """The example inputs (condition, goal) of a GoalConvNet from a checkpoint's input_shapes
+    {"condition": [1, H, W, C], "goal": [1, G]} (diffplan.models). Checkpoints written before
+    the goal vector left the network store the instruction's shape ("tokens") instead: they
+    load through diffplan.baselines.policies.load_policy, which takes G from the world."""
+    if "goal" not in input_shapes:
+        raise ValueError("the checkpoint's input_shapes name no goal vector (it predates the "
+                         "network's goal input): load it with diffplan.baselines.policies."
+                         "load_policy(name, directory, world)")
+    return tuple(jax.ShapeDtypeStruct(tuple(input_shapes[k]), jnp.float32)
+                 for k in ("condition", "goal"))
+
+
+models.register_model(models.class_path(GoalConvNet), GoalConvNet, ConvNetConfig,
+                      inputs=conv_net_inputs)
+
+
+def init_net(model, key, input_shapes: Mapping[str, tuple]):
+    """The params of a (condition, goal) network: input_shapes {"condition": (1, H, W, C),
+    "goal": (1, G)} (the inputs' values do not matter, only their shapes)."""
+    return model.init(key, jnp.zeros(input_shapes["condition"], jnp.float32),
+                      jnp.zeros(input_shapes["goal"], jnp.float32))["params"]
+
+
+def init_state(model, optimizer, seed: int, input_shapes: Mapping[str, tuple]) -> TrainState:
+    """The initial TrainState of a (condition, goal) network (params from PRNGKey(seed); the
+    EMA slot holds a copy of the params, CQL's target network)."""
+    params = init_net(model, jax.random.PRNGKey(seed), input_shapes)
+    return TrainState(params=params, ema_params=params, opt_state=optimizer.init(params),
+                      step=jnp.zeros((), jnp.int32))
+
+
+def greedy_act(model, goal_fn: Callable) -> "GreedyAct":
+    """act_fn(params, conditions, tokens, keys) -> argmax actions int32 (B,), for
+    :func:`diffplan.baselines.rollout.policy_rollout`; goal_fn(tokens (B, L)) -> goal vectors
+    (B, G) is the world's (hashable: a module-level function). Hashable per (model, goal_fn):
+    one compilation serves every checkpoint of the same architecture."""
+    return GreedyAct(model, goal_fn)
+
+
+@dataclasses.dataclass(frozen=True)
+class GreedyAct:
+    model: nn.Module
+    goal_fn: Callable
+
+    def __call__(self, params, conditions, tokens, keys):
+        del keys
+        out = self.model.apply({"params": params}, conditions, self.goal_fn(tokens))
+        return jnp.argmax(out, axis=-1).astype(jnp.int32)
+
+
+def config_dict(config, data: Mapping | None = None) -> dict:
+    """A training config dataclass as JSON-ready metadata, with the world's description of its
+    training data (e.g. the grid world's mixture of settings) merged in."""
+    return {**dataclasses.asdict(config), **dict(data or {})}
