@@ -65,7 +65,7 @@ class PlannerConfig:
     steps; warm start plans first in 3 steps, then each re-plan re-noises the previous plan to
     the second of 3 trailing timesteps (t ~ 66 of 100) and denoises it in 2 calls. (The
     experiments' warm-start row is cheaper: warm_num_steps=2 with replan="on_change", one call
-    per re-plan, re-planning only on new information; experiments.compile_common.)
+    per re-plan, re-planning only on new information; experiments.gridworld_spec.)
     clip_x0: clip the predicted x0 to [-1, 1] during sampling. record_plans: rollouts also
     return the plan used at every move (memory B x T x H x W x G: for figures, small batches
     only).

@@ -20,7 +20,9 @@ import dataclasses
 import os
 
 from diffplan.jax_cache import enable_compilation_cache
-from experiments import compile_common as cc
+from experiments import cli, gridworld_eval as ge, harness
+from experiments.gridworld_spec import ExperimentSpec, SPECS, load_checked, train_setting
+from experiments.recipes import MODEL_SIZES
 
 VARIANTS = (
     ("baseline", dict(grid_repr="class_id", goal_channel=False), "one_shot"),
@@ -35,13 +37,13 @@ def build_parser():
     p = argparse.ArgumentParser(prog="python -m experiments.ablation_compile",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--episodes", type=int, default=1000, help="episodes per setting")
-    p.add_argument("--seed", type=int, default=cc.DEFAULT_EVAL_SEED, help="evaluation seed")
+    p.add_argument("--seed", type=int, default=harness.DEFAULT_EVAL_SEED, help="evaluation seed")
     p.add_argument("--json", metavar="PATH", help="write the results (contract 2) as JSON")
     p.add_argument("--train", action="store_true",
                    help="train the ablation models that have no checkpoint yet")
-    p.add_argument("--train-steps", type=int, default=cc.ExperimentSpec("p_mo2g").train_steps,
+    p.add_argument("--train-steps", type=int, default=ExperimentSpec("p_mo2g").train_steps,
                    help="optimisation steps of each ablation training")
-    p.add_argument("--model-size", choices=sorted(cc.MODEL_SIZES), default="default",
+    p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default="default",
                    help="denoiser size of the ablation trainings")
     p.add_argument("--main-checkpoint", metavar="DIR", default=None,
                    help="the main denoiser (default: the shipped one)")
@@ -49,7 +51,7 @@ def build_parser():
                    help="where ablation trainings live (default runs/)")
     p.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated settings")
     p.add_argument("--batch-size", type=int, default=250, help="episodes per jitted call")
-    p.add_argument("--num-steps", type=int, default=cc.ExperimentSpec("p_mo2g").num_steps,
+    p.add_argument("--num-steps", type=int, default=ExperimentSpec("p_mo2g").num_steps,
                    help="denoising steps per plan")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
@@ -62,7 +64,6 @@ def main(argv=None):
     if any(s not in SETTINGS for s in settings) or not settings:
         parser.error(f"--settings must be a comma-separated list of {SETTINGS}, got "
                      f"{args.settings!r}")
-    from experiments import cli
     cli.check_at_least(parser, "--episodes", args.episodes, 1)
     cli.check_at_least(parser, "--batch-size", args.batch_size, 1)
     cli.check_at_least(parser, "--train-steps", args.train_steps, 2)
@@ -75,39 +76,39 @@ def main(argv=None):
     progress = not args.no_progress
     models = {}
     for name, fields, _ in VARIANTS:
-        spec = dataclasses.replace(cc.SPECS["p_mo2g"], num_steps=args.num_steps, **fields)
+        spec = dataclasses.replace(SPECS["p_mo2g"], num_steps=args.num_steps, **fields)
         key = spec.training_name
         if key in models:
             continue
         if fields["goal_channel"] and fields["grid_repr"] == "embed":
             checkpoint = args.main_checkpoint or spec.default_checkpoint()
         else:
-            root = args.checkpoint_root or os.path.join(cc.REPO_ROOT, "runs")
+            root = args.checkpoint_root or os.path.join(harness.REPO_ROOT, "runs")
             checkpoint = os.path.join(root, key)
             if args.train:
-                cc.train_setting(spec, checkpoint, steps=args.train_steps, progress=progress,
+                train_setting(spec, checkpoint, steps=args.train_steps, progress=progress,
                                  model_size=args.model_size)
-        models[key] = cc.load_checked(checkpoint, spec, ("one_shot", "on_the_fly"), parser,
-                                      "python -m experiments.ablation_compile --train")
+        models[key] = load_checked(checkpoint, spec, ("one_shot", "on_the_fly"), parser,
+                                   "python -m experiments.ablation_compile --train")
 
     rows = []
     for setting in settings:
         # (No warm-start rows here; the default warm schedule is valid for any num_steps.)
-        base = dataclasses.replace(cc.SPECS[setting], num_steps=args.num_steps)
-        episodes = cc.eval_episodes(base.grid_config(), args.episodes, args.seed)
+        base = dataclasses.replace(SPECS[setting], num_steps=args.num_steps)
+        episodes = ge.eval_episodes(base.grid_config(), args.episodes, args.seed)
         for name, fields, mode in VARIANTS:
             spec = dataclasses.replace(base, **fields)
             denoiser = models[spec.training_name]
-            rollout, seconds = cc.evaluate_mode(spec, spec.task(denoiser.num_gen_channels),
+            rollout, seconds = ge.evaluate_mode(spec, spec.task(denoiser.num_gen_channels),
                                                 denoiser, episodes, args.seed, mode,
                                                 args.batch_size, progress)
-            row = cc.metrics_row(f"{setting} {name}", rollout, episodes, seconds,
+            row = ge.metrics_row(f"{setting} {name}", rollout, episodes, seconds,
                                  base.grid_config().has_reference)
             row["setting"] = setting
             rows.append(row)
     result = {"experiment": "ablation_compile", "episodes": args.episodes, "seed": args.seed,
               "rows": rows}
-    print(cc.format_table(rows))
+    print(ge.format_table(rows))
     if args.json:
         cli.write_json(args.json, result)
     return result

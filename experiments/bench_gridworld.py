@@ -29,8 +29,6 @@ JSON (contract 2 layout): {"experiment", "episodes", "seed", "rows": [{"method",
 from __future__ import annotations
 
 import argparse
-import json
-import pathlib
 import statistics
 import sys
 import time
@@ -41,22 +39,12 @@ import numpy as np
 
 from envs.gridworld import env, episode
 from envs.gridworld.config import SETTINGS, make_config
-from diffplan.jax_cache import enable_compilation_cache
+from experiments import bench_common as bc
 
 TARGET_ENV_STEPS_PER_S = 2_000_000
 TARGET_ENV_BATCH = 4096
 TARGET_EPISODES_PER_S = 20_000
 TARGET_EPISODE_SETTING = "p_mo2g"
-
-
-def _timed(fn, args_list):
-    """Seconds of each call fn(*args) (blocking on the result)."""
-    times = []
-    for args in args_list:
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return times
 
 
 def bench_generation(setting: str, num_episodes: int, repeats: int, seed: int):
@@ -66,7 +54,7 @@ def bench_generation(setting: str, num_episodes: int, repeats: int, seed: int):
     start = time.perf_counter()
     first = jax.block_until_ready(fn(jax.random.PRNGKey(seed)))
     compile_seconds = time.perf_counter() - start
-    times = _timed(fn, [(jax.random.PRNGKey(seed + 1 + r),) for r in range(repeats)])
+    times = bc.timed(fn, [(jax.random.PRNGKey(seed + 1 + r),) for r in range(repeats)])
     median = statistics.median(times)
     target = TARGET_EPISODES_PER_S if setting == TARGET_EPISODE_SETTING else None
     row = dict(
@@ -138,7 +126,7 @@ def bench_env(setting: str, episodes, batch_sizes, work: int, repeats: int, seed
         start = time.perf_counter()
         jax.block_until_ready(run(state, actions[0]))
         compile_seconds = time.perf_counter() - start
-        times = _timed(run, [(state, a) for a in actions[1:]])
+        times = bc.timed(run, [(state, a) for a in actions[1:]])
         median = statistics.median(times)
         steps = batch * num_steps
         target = (TARGET_ENV_STEPS_PER_S if batch == TARGET_ENV_BATCH and measure == "observe"
@@ -169,16 +157,6 @@ def format_table(rows) -> str:
     return "\n".join(lines)
 
 
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
-    return values
-
-
 def _settings_list(text: str) -> list[str]:
     values = [v.strip() for v in text.split(",") if v.strip()]
     bad = [v for v in values if v not in SETTINGS]
@@ -202,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--env-setting", choices=SETTINGS, default="p_mo2g",
                         help="setting whose env stepping is timed (its episodes are generated "
                              "once and tiled to each batch size)")
-    parser.add_argument("--batch-sizes", type=_int_list, default=[1, 64, 1024, 4096],
+    parser.add_argument("--batch-sizes", type=bc.int_list, default=[1, 64, 1024, 4096],
                         help="comma-separated env batch sizes")
     parser.add_argument("--work", type=int, default=1_000_000,
                         help="env steps per timed call: each call scans work // batch steps "
@@ -214,25 +192,17 @@ def build_parser() -> argparse.ArgumentParser:
                              "without observe, and step + observe + the observation's feature "
                              "channels")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
-    parser.add_argument("--json", metavar="PATH", default=None, help="write the results here")
-    parser.add_argument("--no-cache", action="store_true",
-                        help="do not use the persistent compilation cache (compile_seconds then "
-                             "measures real compilation)")
+    bc.add_output_flags(parser)
     return parser
 
 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    for name in ("episodes", "work", "repeats"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    bc.check_positive(parser, args, ("episodes", "work", "repeats"))
     if args.seed < 0:
         parser.error(f"--seed must be >= 0, got {args.seed}")
-    if args.json is not None and not pathlib.Path(args.json).resolve().parent.is_dir():
-        parser.error(f"--json {args.json}: directory does not exist")
-    if not args.no_cache:
-        enable_compilation_cache()
+    bc.start(parser, args)
 
     rows = []
     env_episodes = None
@@ -270,9 +240,7 @@ def main(argv=None) -> int:
                      episodes_per_second=TARGET_EPISODES_PER_S,
                      episodes_setting=TARGET_EPISODE_SETTING),
         device=f"{len(jax.devices())} x {device.platform}", jax_version=jax.__version__)
-    if args.json:
-        pathlib.Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
-        print(f"wrote {args.json}")
+    bc.finish(args, result)
     return 0
 
 

@@ -28,12 +28,11 @@ import copy
 import os
 import statistics
 import sys
-import time
 import warnings
 
 import numpy as np
 
-from experiments.bench_gridworld import _int_list  # comma-separated positive integers
+from experiments import bench_common as bc
 
 warnings.filterwarnings("ignore", "overflow encountered in cast")
 
@@ -45,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "MuJoCo's mj_step (one thread) on the same model, and the seconds of one "
                     "vmapped pick-and-place.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--batch-sizes", type=_int_list, default=[1, 16, 64],
+    p.add_argument("--batch-sizes", type=bc.int_list, default=[1, 16, 64],
                    help="comma-separated MJX batch sizes")
     p.add_argument("--steps", type=int, default=1000,
                    help="MJX physics steps per timed call (one jitted loop)")
@@ -58,24 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="episodes drawn for the initial states (default: the largest batch)")
     p.add_argument("--seed", type=int, default=0,
                    help="episode i is generated from fold_in(PRNGKey(seed), i)")
-    p.add_argument("--json", metavar="PATH", help="write the results here")
-    p.add_argument("--no-cache", action="store_true",
-                   help="do not use the persistent compilation cache (compile_seconds then "
-                        "measures real compilation)")
+    bc.add_output_flags(p)
     return p
-
-
-def _timed(fn, repeats: int):
-    """(first call seconds, [timed call seconds]); fn blocks until its result is ready."""
-    start = time.perf_counter()
-    fn()
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return first, times
 
 
 def _row(method, kind, batch, work, first, times, **extra):
@@ -99,7 +82,7 @@ def bench_mjx(states, batch_sizes, steps: int, repeats: int):
         def call():
             physics.simulate_batch(data, steps).qpos.block_until_ready()
 
-        first, times = _timed(call, repeats)
+        first, times = bc.first_and_timed(call, repeats)
         rows.append(_row(f"MJX step, batch {batch}", "mjx", batch, batch * steps, first, times,
                          steps_per_call=steps))
         print(f"MJX batch {batch}: {rows[-1]['per_second']:,.0f} env steps/s", file=sys.stderr)
@@ -122,7 +105,7 @@ def bench_c(states, steps: int, repeats: int):
         for _ in range(steps):
             mujoco.mj_step(model, data)
 
-    first, times = _timed(call, repeats)
+    first, times = bc.first_and_timed(call, repeats)
     return _row("C MuJoCo mj_step, 1 thread", "c", 1, steps, first, times, steps_per_call=steps)
 
 
@@ -138,7 +121,7 @@ def bench_placement(states, batch: int, repeats: int):
     def call():
         env.step_batch(states, actions).data.qpos.block_until_ready()
 
-    first, times = _timed(call, repeats)
+    first, times = bc.first_and_timed(call, repeats)
     row = _row(f"pick-and-place, batch {batch}", "pick_and_place", batch,
                batch * primitive.NUM_STEPS, first, times,
                physics_steps_per_placement=primitive.NUM_STEPS)
@@ -146,42 +129,28 @@ def bench_placement(states, batch: int, repeats: int):
     return row
 
 
-COLUMNS = (("method", "{:<30}", "method"), ("per_second", "{:>14,.0f}", "steps/s"),
-           ("best_per_second", "{:>14,.0f}", "best steps/s"),
-           ("seconds_per_call", "{:>10.3f}", "s/call"),
-           ("compile_seconds", "{:>10.1f}", "first s"))
-
-
-def format_table(rows) -> str:
-    head = " ".join(h.ljust(len(f.format(0 if k != "method" else ""))) if k == "method"
-                    else h.rjust(len(f.format(0))) for k, f, h in COLUMNS)
-    lines = [head, "-" * len(head)]
-    lines += [" ".join(f.format(r[k]) for k, f, _ in COLUMNS) for r in rows]
-    return "\n".join(lines)
+TABLE_COLUMNS = (("method", "{:<30}", "method"), ("per_second", "{:>14,.0f}", "steps/s"),
+                 ("best_per_second", "{:>14,.0f}", "best steps/s"),
+                 ("seconds_per_call", "{:>10.3f}", "s/call"),
+                 ("compile_seconds", "{:>10.1f}", "first s"))
 
 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    for name in ("steps", "c_steps", "repeats"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    bc.check_positive(parser, args, ("steps", "c_steps", "repeats"))
     if args.placement_batch < 0:
         parser.error(f"--placement-batch must be >= 0, got {args.placement_batch}")
     if args.episodes is not None and args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.json and not os.path.isdir(os.path.dirname(os.path.abspath(args.json))):
-        parser.error(f"--json {args.json}: directory does not exist")
-    if not args.no_cache:
-        from diffplan.jax_cache import enable_compilation_cache
-
-        enable_compilation_cache()
+    bc.start(parser, args)
     import jax
     import mujoco
 
     from envs.kuka import env
     from envs.kuka.config import COLUMNS
-    from experiments.kuka_common import generate_episodes, write_json
+    from experiments.harness import format_table
+    from experiments.kuka_eval import generate_episodes
 
     episodes = args.episodes or max(args.batch_sizes + [args.placement_batch])
     eps = generate_episodes(COLUMNS["stacking_multi"], episodes, args.seed, episodes)
@@ -193,7 +162,7 @@ def main(argv=None) -> int:
     device = jax.devices()[0]
     print(f"jax {jax.__version__}, mujoco {mujoco.__version__} on {len(jax.devices())} x "
           f"{device.platform}, {os.cpu_count()} CPU cores")
-    print(format_table(rows))
+    print(format_table(rows, TABLE_COLUMNS))
     for r in rows:
         if r["kind"] == "pick_and_place":
             print(f"{r['method']}: {r['seconds_per_placement']:.2f} s per vmapped pick-and-place "
@@ -201,8 +170,7 @@ def main(argv=None) -> int:
     result = dict(experiment="bench_kuka", episodes=episodes, seed=args.seed, rows=rows,
                   device=f"{len(jax.devices())} x {device.platform}",
                   jax_version=jax.__version__, mujoco_version=mujoco.__version__)
-    if args.json:
-        write_json(args.json, result)
+    bc.finish(args, result)
     return 0
 
 

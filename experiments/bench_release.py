@@ -76,7 +76,9 @@ def our_rows(checkpoint: str, repeats: int) -> list[dict]:
     from diffplan import Planner, PlannerConfig, load_denoiser
     from diffplan.denoiser import count_params
     from diffplan.rollouts import rollout
-    from experiments.compile_common import ROLLOUT_STREAM, SPECS, eval_episodes
+    from experiments.gridworld_eval import eval_episodes
+    from experiments.gridworld_spec import SPECS
+    from experiments.harness import planner_keys
 
     den = load_denoiser(checkpoint)
     h, w, g = den.plan_shape
@@ -91,8 +93,7 @@ def our_rows(checkpoint: str, repeats: int) -> list[dict]:
     task = spec.task(den.num_gen_channels)
     planner = Planner(den, PlannerConfig(mode="on_the_fly", num_steps=10))
     episodes = eval_episodes(spec.grid_config(), BATCH, 3000)
-    root = jax.random.fold_in(jax.random.PRNGKey(3000), ROLLOUT_STREAM)
-    keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.arange(BATCH))
+    keys = planner_keys(3000, np.arange(BATCH))
     run = jax.jit(lambda p, k, e: rollout(task, p, k, e))
     jax.block_until_ready(run(planner, keys, episodes))
     episode_s = _median_time(lambda: jax.block_until_ready(run(planner, keys, episodes)),

@@ -18,8 +18,9 @@ import argparse
 import os
 import sys
 
-from experiments import cli
-from experiments import compile_common as cc
+from experiments import cli, gridworld_eval as ge, harness
+from experiments.gridworld_spec import SPECS, train_setting
+from experiments.recipes import MODEL_SIZES
 
 
 class _Pause(Exception):
@@ -29,7 +30,7 @@ class _Pause(Exception):
 def build_parser():
     p = argparse.ArgumentParser(prog="python -m experiments.bench_train",
                                 description=__doc__.split("\n\n")[0])
-    p.add_argument("--train-dir", default=os.path.join(cc.REPO_ROOT, "runs", "bench_train"),
+    p.add_argument("--train-dir", default=os.path.join(harness.REPO_ROOT, "runs", "bench_train"),
                    help="training output (resumed if it holds a checkpoint of this recipe)")
     p.add_argument("--eval-every", type=int, default=1000, help="steps between evaluations")
     p.add_argument("--max-steps", type=int, default=None,
@@ -45,7 +46,7 @@ def build_parser():
                         "asks that the reference was visited before the target)")
     p.add_argument("--stop-at-target", action="store_true",
                    help="stop training at the first evaluation with SR >= --target")
-    p.add_argument("--model-size", choices=sorted(cc.MODEL_SIZES), default="default")
+    p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default="default")
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -63,9 +64,9 @@ def main(argv=None) -> dict:
     cli.check_output_file(parser, "--json", args.json)
     cli.check_output_dir(parser, "--train-dir", args.train_dir)
     enable_compilation_cache()
-    spec = cc.SPECS["p_mo2g"]
+    spec = SPECS["p_mo2g"]
     total = spec.train_steps if args.max_steps is None else args.max_steps
-    episodes = cc.eval_episodes(spec.grid_config(), args.episodes, cc.VALIDATION_SEED)
+    episodes = ge.eval_episodes(spec.grid_config(), args.episodes, harness.VALIDATION_SEED)
     evaluations, reached = [], None
 
     def pause(step, record):
@@ -74,18 +75,18 @@ def main(argv=None) -> dict:
 
     while True:
         try:
-            cc.train_setting(spec, args.train_dir, steps=spec.train_steps,
+            train_setting(spec, args.train_dir, steps=spec.train_steps,
                              progress=not args.no_progress, model_size=args.model_size,
                              checkpoint_every=args.eval_every, callback=pause)
             finished = True
         except _Pause:
             finished = False
-        denoiser, meta = cc.load_model(args.train_dir)
+        denoiser, meta = harness.load_model(args.train_dir)
         step = int(meta["step"])
-        rollout, seconds = cc.evaluate_mode(spec, spec.task(denoiser.num_gen_channels),
-                                            denoiser, episodes, cc.VALIDATION_SEED, args.mode,
-                                            min(250, args.episodes), progress=False)
-        row = cc.metrics_row(args.mode, rollout, episodes, seconds, True)
+        rollout, seconds = ge.evaluate_mode(spec, spec.task(denoiser.num_gen_channels),
+                                            denoiser, episodes, harness.VALIDATION_SEED,
+                                            args.mode, min(250, args.episodes), progress=False)
+        row = ge.metrics_row(args.mode, rollout, episodes, seconds, True)
         evaluations.append({"step": step, "train_seconds": float(meta.get("wall_time", 0.0)),
                             "SR": row["SR"], "SR_ordered": row["SR_ordered"],
                             "path_f1": row["path_f1"]})
@@ -97,7 +98,7 @@ def main(argv=None) -> dict:
             break
     last = evaluations[-1]
     result = {"experiment": "bench_train", "episodes": args.episodes,
-              "seed": cc.VALIDATION_SEED, "mode": args.mode, "target_SR": args.target,
+              "seed": harness.VALIDATION_SEED, "mode": args.mode, "target_SR": args.target,
               "target_metric": args.target_metric,
               "steps_per_second": last["step"] / max(last["train_seconds"], 1e-9),
               "reached": reached, "rows": [dict(method=f"step {e['step']}", **e)

@@ -66,6 +66,18 @@ def only_with(parser: argparse.ArgumentParser, args: argparse.Namespace, needed:
                      f"--{needed}")
 
 
+def check_training_flags(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                         train_flags: dict[str, str]) -> None:
+    """The flags of :func:`add_training_flags`: train_flags (attribute -> flag, e.g.
+    --train-steps) only with --train, --checkpoint not with --train, counts in range."""
+    only_with(parser, args, "train", train_flags)
+    if args.train and args.checkpoint is not None:
+        parser.error("--checkpoint and --train exclude each other: --train evaluates what it "
+                     "trains (its output directory is --train-dir)")
+    check_at_least(parser, "--train-steps", args.train_steps, 2)
+    check_at_least(parser, "--checkpoint-every", args.checkpoint_every, 1)
+
+
 def write_json(path: str, result: dict, announce: bool = True) -> None:
     """Writes ``result`` as indented JSON to ``path`` atomically (a temporary file in the same
     directory, then renamed: a crash mid-write never leaves half a file), creating the

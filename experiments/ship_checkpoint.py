@@ -16,7 +16,9 @@ import argparse
 import json
 import os
 
-from experiments import compile_common as cc
+from experiments import gridworld_eval, kuka_eval
+from experiments.gridworld_spec import TRAINING_NAME
+from experiments.harness import CHECKPOINT_ROOT
 
 
 def _training_summary(train_dir):
@@ -33,11 +35,11 @@ def _training_summary(train_dir):
 
 WORLDS = {
     # world: (default destination, default training command, what the model is)
-    "gridworld": (os.path.join(cc.CHECKPOINT_ROOT, cc.TRAINING_NAME),
+    "gridworld": (os.path.join(CHECKPOINT_ROOT, TRAINING_NAME),
                   "python -m experiments.compile_p_mo2g --train",
                   "The grid-world denoiser shipped with diffplan (one model for 1O1G, MO1G and "
                   "P-MO2G)."),
-    "kuka": (os.path.join(cc.CHECKPOINT_ROOT, "kuka"),
+    "kuka": (os.path.join(CHECKPOINT_ROOT, "kuka"),
              "python -m experiments.kuka_stacking --train",
              "The Kuka block-world denoiser shipped with diffplan (one model for stacking and "
              "rearrangement, single and multiple constraints, canonical and paraphrased "
@@ -47,9 +49,8 @@ WORLDS = {
 
 def _result_table(result) -> str:
     if str(result.get("experiment", "")).startswith("kuka_"):
-        from experiments import kuka_common
-        return kuka_common.format_table(result["rows"])
-    return cc.format_table(result["rows"])
+        return kuka_eval.format_table(result["rows"])
+    return gridworld_eval.format_table(result["rows"])
 
 
 def _result_command(result) -> str:

@@ -79,17 +79,18 @@ def test_eager_variants_run_the_same_moves_and_calls():
     """The op-by-op eager loop (no jax.jit) and the compiled-forward one do the same work:
     one move of 2 episodes, 2 denoising steps each."""
     from diffplan import load_denoiser
-    from experiments import bench_planner
-    from experiments.compile_common import SPECS, eval_episodes
+    from experiments import bench_eager
+    from experiments.gridworld_eval import eval_episodes
+    from experiments.gridworld_spec import SPECS
 
     den = load_denoiser(os.path.join(REPO, "checkpoints", "compile_gridworld"))
     config = SPECS["p_mo2g"].grid_config()
     episodes = eval_episodes(config, 2, 3000)
-    works = [bench_planner.eager_rollout(den, config, episodes, 2, 1, 0, forward)[1:3]
+    works = [bench_eager.eager_rollout(den, config, episodes, 2, 1, 0, forward)[1:3]
              for forward in ("jit", "op")]
     assert works[0] == works[1] == (2, 4)
     with pytest.raises(ValueError, match="forward must be one of"):
-        bench_planner.eager_rollout(den, config, episodes, 2, 1, 0, "torch")
+        bench_eager.eager_rollout(den, config, episodes, 2, 1, 0, "torch")
 
 
 def test_bench_train_tiny_run(tmp_path):

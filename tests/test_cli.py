@@ -48,3 +48,43 @@ def test_check_output_file(path, message, tmp_path, capsys):
     with pytest.raises(SystemExit):
         cli.check_output_file(_parser(), "--out", path.replace("{tmp}", str(tmp_path)), ".npz")
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--train-steps", "3"], "--train-steps only makes sense with --train"),
+    (["--train", "--checkpoint", "c"], "exclude each other"),
+    (["--train", "--train-steps", "1"], "--train-steps must be >= 2"),
+    (["--train", "--checkpoint-every", "0"], "--checkpoint-every must be >= 1"),
+])
+def test_training_flags_are_checked_together(argv, message, capsys):
+    parser = _parser()
+    cli.add_training_flags(parser, training_name="x", served="y", train_steps=10,
+                           checkpoint_every=5, model_sizes={"tiny": {}})
+    args = parser.parse_args(argv)
+    with pytest.raises(SystemExit):
+        cli.check_training_flags(parser, args, {"train_steps": "--train-steps",
+                                                "checkpoint_every": "--checkpoint-every"})
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_harness_intervals_tables_and_keys():
+    """The shared harness: Wilson intervals of rates, the table layout (missing values as
+    '-'), and the seed convention of episode and planner keys."""
+    import jax
+    import numpy as np
+
+    from experiments import harness
+
+    assert harness.wilson_interval(0, 0) == [0.0, 100.0]
+    lo, hi = harness.wilson_interval(3000, 3000)
+    assert hi == pytest.approx(100.0) and lo == pytest.approx(99.872, abs=1e-3)  # [99.87, 100]
+    assert harness.rate_interval(31.3, 3000) == harness.wilson_interval(939, 3000)
+    table = harness.format_table([{"method": "a", "SR": 50.0}, {"method": "bb", "SR": None}],
+                                 (("method", "{:<4}", "m"), ("SR", "{:>6.1f}", "SR")))
+    assert table.splitlines() == ["m        SR", "-----------", "a      50.0", "bb        -"]
+    root = jax.random.PRNGKey(9)
+    np.testing.assert_array_equal(harness.episode_keys(9, 2, 4),
+                                  [jax.random.fold_in(root, i) for i in (2, 3)])
+    stream = jax.random.fold_in(root, harness.ROLLOUT_STREAM)
+    np.testing.assert_array_equal(harness.planner_keys(9, np.array([5, 1])),
+                                  [jax.random.fold_in(stream, i) for i in (5, 1)])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from envs.gridworld import metrics
-from experiments import compile_common as cc
+from experiments import gridworld_cli, gridworld_spec, harness
 
 EXPECTED_ROW_FIELDS = {"method", "SR", "GD", "path_precision", "path_recall", "path_f1",
                        "denoiser_calls_per_episode", "seconds"}
@@ -22,7 +22,7 @@ def tiny_run(tmp_path_factory):
             str(out / "train"), "--episodes", "6", "--batch-size", "4", "--num-steps", "2",
             "--warm-num-steps", "2", "--warm-start-step", "1", "--json", str(out / "r.json"),
             "--trajectories", str(out / "t.npz"), "--no-progress"]
-    result = cc.main("p_mo2g", argv)
+    result = gridworld_cli.main("p_mo2g", argv)
     return out, result
 
 
@@ -32,7 +32,7 @@ def test_json_contract(tiny_run):
         data = json.load(f)
     assert data == json.loads(json.dumps(result))
     assert data["experiment"] == "compile_p_mo2g"
-    assert data["episodes"] == 6 and data["seed"] == cc.DEFAULT_EVAL_SEED
+    assert data["episodes"] == 6 and data["seed"] == harness.DEFAULT_EVAL_SEED
     methods = [row["method"] for row in data["rows"]]
     assert methods == ["one-shot", "two-shot", "on-the-fly", "warm-start on-the-fly"]
     assert data["trajectories_method"] == "on-the-fly"
@@ -74,7 +74,7 @@ def test_trajectories_file_recomputes_the_main_row(tiny_run):
 def test_other_settings_evaluate_a_checkpoint(tiny_run, tmp_path):
     out, _ = tiny_run
     for setting in ("mo1g", "1o1g"):
-        result = cc.main(setting, ["--checkpoint", str(out / "train"), "--episodes", "3",
+        result = gridworld_cli.main(setting, ["--checkpoint", str(out / "train"), "--episodes", "3",
                                    "--batch-size", "3", "--num-steps", "2",
                                    "--warm-start-step", "1", "--modes", "on_the_fly",
                                    "--json", str(tmp_path / f"{setting}.json"), "--no-progress"])
@@ -89,7 +89,7 @@ def test_baseline_rows_beside_the_planner(tiny_run, tmp_path):
     from experiments.baselines_eval import baseline_rows
 
     out, _ = tiny_run
-    result = cc.main("1o1g", ["--checkpoint", str(out / "train"), "--episodes", "4",
+    result = gridworld_cli.main("1o1g", ["--checkpoint", str(out / "train"), "--episodes", "4",
                               "--seeds", "7,8", "--batch-size", "4", "--num-steps", "2",
                               "--modes", "one_shot", "--baselines", "bc,cql", "--no-progress"])
     rows = result["rows"]
@@ -104,7 +104,7 @@ def test_baseline_rows_beside_the_planner(tiny_run, tmp_path):
 
 def test_profile_writes_a_trace(tiny_run, tmp_path):
     out, _ = tiny_run
-    cc.main("p_mo2g", ["--checkpoint", str(out / "train"), "--episodes", "2", "--batch-size",
+    gridworld_cli.main("p_mo2g", ["--checkpoint", str(out / "train"), "--episodes", "2", "--batch-size",
                        "2", "--num-steps", "2", "--warm-num-steps", "2", "--modes",
                        "one_shot", "--profile", str(tmp_path / "prof"), "--no-progress"])
     traces = [f for _, _, files in os.walk(tmp_path / "prof") for f in files]
@@ -113,7 +113,7 @@ def test_profile_writes_a_trace(tiny_run, tmp_path):
 
 def test_missing_checkpoint_says_how_to_get_one(tmp_path, capsys):
     with pytest.raises(SystemExit) as err:
-        cc.main("p_mo2g", ["--checkpoint", str(tmp_path / "nothing"), "--episodes", "2"])
+        gridworld_cli.main("p_mo2g", ["--checkpoint", str(tmp_path / "nothing"), "--episodes", "2"])
     assert err.value.code == 2
     msg = capsys.readouterr().err.strip()
     assert "--train" in msg and len(msg.splitlines()) == 1
@@ -147,7 +147,7 @@ def test_bad_arguments_are_rejected_in_one_line(argv, message, tmp_path, capsys)
     (tmp_path / "ckpt_file").write_text("not a checkpoint")
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     with pytest.raises(SystemExit) as err:
-        cc.main("p_mo2g", argv + ["--episodes" if "--episodes" not in argv else "--seed",
+        gridworld_cli.main("p_mo2g", argv + ["--episodes" if "--episodes" not in argv else "--seed",
                                   "1" if "--episodes" not in argv else "3", "--no-progress"])
     assert err.value.code == 2
     lines = [l for l in capsys.readouterr().err.strip().splitlines() if l.startswith(
@@ -156,36 +156,13 @@ def test_bad_arguments_are_rejected_in_one_line(argv, message, tmp_path, capsys)
     assert not any("Traceback" in l for l in lines)
 
 
-def test_evaluation_episodes_are_disjoint_from_training():
-    """Training draws its episodes from its own key stream: even with the same seed for both,
-    no evaluation episode is among the training episodes of the first steps."""
-    from diffplan.train import step_key
-    from envs.gridworld.training import training_episode_keys
-    from envs.gridworld.episode import generate
-
-    grid_config = cc.SPECS["p_mo2g"].grid_config()
-    eval_eps = cc.eval_episodes(grid_config, 512, seed=0)
-    gen = jax.jit(jax.vmap(generate, in_axes=(0, None)), static_argnums=1)
-
-    def fingerprints(eps):
-        return {np.asarray(g).tobytes() + np.asarray(a).tobytes()
-                for g, a in zip(eps.grid, eps.agent)}
-
-    train_prints = set()
-    for step in range(4):
-        keys = training_episode_keys(step_key(0, step), 128)
-        train_prints |= fingerprints(gen(keys, grid_config))
-    assert len(train_prints) == 512  # distinct episodes
-    assert not (train_prints & fingerprints(eval_eps))
-
-
 def test_same_seed_same_results(tiny_run, tmp_path):
     out, _ = tiny_run
     argv = ["--checkpoint", str(out / "train"), "--episodes", "4", "--batch-size", "4",
             "--num-steps", "2", "--warm-start-step", "1", "--modes", "on_the_fly",
             "--no-progress"]
-    a = cc.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "a.npz")])
-    b = cc.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "b.npz"),
+    a = gridworld_cli.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "a.npz")])
+    b = gridworld_cli.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "b.npz"),
                                   "--batch-size", "3"])
     np.testing.assert_array_equal(np.load(tmp_path / "a.npz")["positions"],
                                   np.load(tmp_path / "b.npz")["positions"])
@@ -201,20 +178,20 @@ def test_ship_checkpoint_writes_a_loadable_export_with_its_note(tiny_run, tmp_pa
                           "--results", str(out / "r.json")])
     note = (dest / "NOTE.md").read_text()
     assert "--train" in note and "seed" in note and "on-the-fly" in note
-    denoiser, _ = cc.load_model(str(dest))
-    assert denoiser.model_config == cc.SPECS["p_mo2g"].model_config("tiny")
+    denoiser, _ = harness.load_model(str(dest))
+    assert denoiser.model_config == gridworld_spec.SPECS["p_mo2g"].model_config("tiny")
     assert jax.tree.leaves(denoiser.params)
 
 
 def test_x0_prediction_trains_and_evaluates(tmp_path):
     """--prediction x0: the checkpoint records it and evaluation converts x0 to noise."""
-    result = cc.main("p_mo2g", ["--train", "--prediction", "x0", "--train-steps", "2",
+    result = gridworld_cli.main("p_mo2g", ["--train", "--prediction", "x0", "--train-steps", "2",
                                 "--model-size", "tiny", "--train-dir", str(tmp_path / "x0"),
                                 "--episodes", "2", "--batch-size", "2", "--num-steps", "2",
                                 "--warm-start-step", "1", "--modes", "on_the_fly",
                                 "--no-progress"])
     assert result["rows"][0]["denoiser_calls_per_episode"] > 0
-    denoiser, _ = cc.load_model(str(tmp_path / "x0"))
+    denoiser, _ = harness.load_model(str(tmp_path / "x0"))
     assert denoiser.prediction == "x0"
 
 
@@ -234,6 +211,6 @@ def test_ablation_runs_every_row_on_a_tiny_configuration(tiny_run, tmp_path):
     with open(tmp_path / "ablation.json") as f:
         assert json.load(f)["experiment"] == "ablation_compile"
     # The no-g models were trained without the goal loss, with their own grid representation.
-    denoiser, meta = cc.load_model(str(tmp_path / "compile_gridworld_class_id_no_goal"))
+    denoiser, meta = harness.load_model(str(tmp_path / "compile_gridworld_class_id_no_goal"))
     assert denoiser.model_config.grid_repr == "class_id"
     assert meta["extra"]["goal_channel"] is False

@@ -11,7 +11,7 @@ import pytest
 
 import kuka_fixtures as kf
 from envs.kuka import grammar, render
-from experiments import kuka_common
+from experiments import kuka_cli, kuka_spec
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 
@@ -40,7 +40,7 @@ def _load_states(path):
 @pytest.mark.parametrize("kind", ["stacking", "rearrangement"])
 def test_cli_end_to_end(kind, tmp_path):
     out_json, out_npz, figs = tmp_path / "r.json", tmp_path / "s.npz", tmp_path / "figs"
-    result = kuka_common.main(kind, [
+    result = kuka_cli.main(kind, [
         "--policy", "expert", "--episodes", "4", "--seed", "5", "--batch-size", str(kf.BATCH),
         "--json", str(out_json),
         "--states", str(out_npz), "--figures", str(figs), "--num-figures", "1", "--no-progress"])
@@ -85,7 +85,7 @@ def test_cli_end_to_end(kind, tmp_path):
 ])
 def test_cli_rejects_bad_input(argv, message, capsys):
     with pytest.raises(SystemExit) as info:
-        kuka_common.main("stacking", argv)
+        kuka_cli.main("stacking", argv)
     assert info.value.code == 2
     err = capsys.readouterr().err
     lines = err.strip().splitlines()  # argparse's usage (wrapped), then one error line
@@ -94,7 +94,7 @@ def test_cli_rejects_bad_input(argv, message, capsys):
 
 def test_missing_checkpoint_says_how_to_get_one(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
-        kuka_common.main("rearrangement", ["--checkpoint", str(tmp_path / "none"),
+        kuka_cli.main("rearrangement", ["--checkpoint", str(tmp_path / "none"),
                                            "--no-progress"])
     assert info.value.code == 2
     err = capsys.readouterr().err.strip()
@@ -114,7 +114,7 @@ def _planner_run(kind, train_dir, out, extra):
     argv = ["--train", "--train-steps", "3", "--train-dir", str(train_dir), "--episodes", "4",
             "--seed", "6", "--batch-size", str(kf.BATCH), "--json", str(out / "r.json"),
             "--states", str(out / "s.npz"), "--no-progress", *extra]
-    return kuka_common.main(kind, argv)
+    return kuka_cli.main(kind, argv)
 
 
 def _check_planner_result(result, out, kind, modes, languages):
@@ -172,14 +172,14 @@ def test_rearrangement_planner_end_to_end_with_paraphrases(train_dir, tmp_path):
 def test_videos_render_or_say_why(tmp_path, monkeypatch, capsys):
     final, frames = kf.expert_run("rearrangement_single", 11)
     videos = {"ep": frames[0, 0, ::6]}
-    written = kuka_common.write_videos(str(tmp_path / "v"), videos)
+    written = kuka_cli.write_videos(str(tmp_path / "v"), videos)
     if written:  # a GL backend exists here
         from PIL import Image
 
         with Image.open(written[0]) as gif:
             assert gif.n_frames == len(videos["ep"])
     monkeypatch.setattr(render, "GL_BACKENDS", ("no-such-backend",))
-    assert kuka_common.write_videos(str(tmp_path / "w"), videos) == []
+    assert kuka_cli.write_videos(str(tmp_path / "w"), videos) == []
     lines = [ln for ln in capsys.readouterr().out.splitlines() if "no GL backend" in ln]
     assert len(lines) == 1
 
@@ -198,5 +198,5 @@ def test_ship_kuka_checkpoint_with_its_note(train_dir, tmp_path):
     note = (dest / "NOTE.md").read_text()
     assert "kuka_stacking --train" in note and "task specs" in note and "SR_Diff" in note
     assert "python -m experiments.kuka_rearrangement --episodes 4 --seed 6" in note
-    denoiser = kuka_common.load_checked(str(dest), kuka_common.NUM_STEPS, "stacking")
+    denoiser = kuka_spec.load_checked(str(dest), kuka_spec.NUM_STEPS, "stacking")
     assert denoiser.plan_shape == (24, 24, 3)

@@ -13,7 +13,7 @@ import kuka_fixtures as kf
 from diffplan.planner import Planner, PlannerConfig
 from envs.kuka.config import COLUMNS
 from envs.kuka.task import KukaTask
-from experiments import kuka_common as kc
+from experiments import kuka_eval as ke, kuka_spec as ks
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 
@@ -21,20 +21,20 @@ SEED = 4242
 """Used by no shipped number and no choice (validation 1000, evaluation 2001-2003)."""
 EPISODES = 8
 """Episodes per column (in calls of kf.BATCH, the compiled size the CLI tests use too)."""
-MIN_SR = 90.0
-"""Strict SR over the pooled constraints of the four columns' EPISODES episodes each; see
-checkpoints/kuka/NOTE.md for what this seed measured when the checkpoint was shipped."""
+MAX_FAILED = 1
+"""Constraints (pooled over the four columns' EPISODES episodes each) that may fail strict
+success; measured when shipped: none (strict SR 100 on this seed)."""
 
 
 @pytest.fixture(scope="module")
 def denoiser():
-    if not os.path.isdir(kc.DEFAULT_CHECKPOINT):
-        pytest.fail(f"the shipped checkpoint {kc.DEFAULT_CHECKPOINT} is missing")
-    return kc.load_checked(kc.DEFAULT_CHECKPOINT, kc.NUM_STEPS, "stacking")
+    if not os.path.isdir(ks.DEFAULT_CHECKPOINT):
+        pytest.fail(f"the shipped checkpoint {ks.DEFAULT_CHECKPOINT} is missing")
+    return ks.load_checked(ks.DEFAULT_CHECKPOINT, ks.NUM_STEPS, "stacking")
 
 
 def test_checkpoint_has_a_note_with_its_provenance():
-    note = open(os.path.join(kc.DEFAULT_CHECKPOINT, "NOTE.md")).read()
+    note = open(os.path.join(ks.DEFAULT_CHECKPOINT, "NOTE.md")).read()
     for needle in ("--train", "seed", "SR", " min "):
         assert needle in note
 
@@ -43,20 +43,20 @@ def test_checkpoint_is_the_default_model_of_the_recipe(denoiser):
     from diffplan.checkpoint import read_metadata
     from envs.kuka.training import Recipe
 
-    assert denoiser.model_config == kc.model_config("default")
-    assert denoiser.prediction == kc.PREDICTION
-    extra = read_metadata(kc.DEFAULT_CHECKPOINT)["extra"]
+    assert denoiser.model_config == ks.model_config("default")
+    assert denoiser.prediction == ks.PREDICTION
+    extra = read_metadata(ks.DEFAULT_CHECKPOINT)["extra"]
     assert {k: extra[k] for k in Recipe().metadata()} == Recipe().metadata()
 
 
 def test_on_the_fly_strict_sr_on_fresh_episodes(denoiser):
-    planner = Planner(denoiser, PlannerConfig(mode="on_the_fly", num_steps=kc.NUM_STEPS))
+    planner = Planner(denoiser, PlannerConfig(mode="on_the_fly", num_steps=ks.NUM_STEPS))
     task = KukaTask()
     held, total = 0, 0
     for spec in COLUMNS.values():
-        episodes = kc.generate_episodes(spec, EPISODES, SEED, kf.BATCH)
-        final = kc.run_planner(task, planner, episodes, SEED, kf.BATCH)
-        strict, _ = kc.constraint_success(episodes, final)
+        episodes = ke.generate_episodes(spec, EPISODES, SEED, kf.BATCH)
+        final = ke.run_planner(task, planner, episodes, SEED, kf.BATCH)
+        strict, _ = ke.constraint_success(episodes, final)
         # Success is the final physical poses: recomputed here in plain numpy.
         for i, constraints in enumerate(np.asarray(episodes.constraints)):
             for (top, bottom), ok in zip(constraints, strict[i]):
@@ -65,5 +65,5 @@ def test_on_the_fly_strict_sr_on_fresh_episodes(denoiser):
                                              bottom)
                     held, total = held + int(ok), total + 1
         assert (final["num_plans"] == final["placements"]).all()
-    assert 100.0 * held / total >= MIN_SR, (held, total)
+    assert total - held <= MAX_FAILED, (held, total)
     assert jax.devices()[0].platform == "cpu"

@@ -110,10 +110,6 @@ def test_the_import_reader_resolves_from_imports_to_modules():
     assert "envs.gridworld.episode" in graph["envs.gridworld.task"]
 
 
-PENDING = pytest.mark.xfail(strict=True, reason="the baselines and experiments refactor lands next")
-
-
-@PENDING
 @pytest.mark.parametrize("package, forbidden", [("diffplan", ("envs", "experiments")),
                                                 ("envs", ("experiments",))])
 def test_lower_layers_never_import_upper_ones(package, forbidden):
@@ -124,12 +120,10 @@ def test_lower_layers_never_import_upper_ones(package, forbidden):
     assert not bad, bad
 
 
-@PENDING
 def test_no_import_circles():
     assert circles(import_graph()) == []
 
 
-@PENDING
 def test_experiment_modules_are_short():
     long = {str(p.relative_to(ROOT)): n for p in (ROOT / "experiments").rglob("*.py")
             if (n := len(p.read_text().splitlines())) > MAX_EXPERIMENT_LINES}

@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from envs.gridworld import grammar
-from experiments import compile_common as cc
+from experiments import gridworld_flags, gridworld_spec, harness
 
 WORDS = [w for w in grammar.VOCAB if w not in grammar.SPECIAL_TOKENS]
 
@@ -77,15 +77,15 @@ def test_cli_arguments_are_accepted_or_refused_in_one_line(flags, switches):
     import contextlib
     import io
 
-    spec = cc.SPECS["p_mo2g"]
-    parser = cc.build_parser(spec)
+    spec = gridworld_spec.SPECS["p_mo2g"]
+    parser = gridworld_flags.build_parser(spec)
     argv = [x for k, v in flags.items() for x in (k, v)] + switches
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
         try:
             args = parser.parse_args(argv)
-            cc.check_args(parser, args, spec)
-            cc.parse_seeds(parser, args)
+            gridworld_flags.check_args(parser, args, spec)
+            harness.parse_seeds(parser, args)
         except SystemExit as e:
             assert e.code == 2
             lines = err.getvalue().strip().splitlines()

@@ -1,24 +1,26 @@
 """The shipped grid-world checkpoint still loads and still performs: on-the-fly SR and
-SR_ordered >= 95% on 64 fresh P-MO2G episodes (seed 4242, used for no choice; measured 100 / 100
-when shipped), on the executed trajectories."""
+SR_ordered on 64 fresh P-MO2G episodes (seed 4242, used for no choice) at most one episode below
+what was measured when shipped (100 / 100, i.e. 64 of 64), on the executed trajectories."""
 import os
 
-import jax
 import numpy as np
 import pytest
 
 from envs.gridworld.metrics import trajectory_metrics
-from experiments import compile_common as cc
+from experiments import gridworld_eval as ge, harness
+from experiments.gridworld_spec import SPECS, TRAINING_NAME
 
-CHECKPOINT = os.path.join(cc.CHECKPOINT_ROOT, cc.TRAINING_NAME)
+CHECKPOINT = os.path.join(harness.CHECKPOINT_ROOT, TRAINING_NAME)
+MIN_SR = 100.0 * 63 / 64
+"""At most one of the 64 episodes may fail (measured: none, in both modes)."""
 
 
 @pytest.fixture(scope="module")
 def shipped():
     if not os.path.isdir(CHECKPOINT):
         pytest.fail(f"the shipped checkpoint {CHECKPOINT} is missing")
-    spec = cc.SPECS["p_mo2g"]
-    denoiser, metadata = cc.load_model(CHECKPOINT)
+    spec = SPECS["p_mo2g"]
+    denoiser, metadata = harness.load_model(CHECKPOINT)
     return spec, denoiser, metadata
 
 
@@ -37,15 +39,15 @@ def test_checkpoint_config_matches_the_default_model(shipped):
 
 def _run_64(shipped, mode):
     """(episodes, rollout) of the mode on 64 fresh P-MO2G episodes of seed 4242 (a seed used
-    by no shipped number; README uses 1000), after checking SR and SR_ordered >= 95."""
+    by no shipped number; README uses 1000), after checking SR and SR_ordered >= MIN_SR."""
     spec, denoiser, _ = shipped
     task = spec.task(denoiser.num_gen_channels)
-    episodes = cc.eval_episodes(spec.grid_config(), 64, seed=4242)
-    rollout, _ = cc.evaluate_mode(spec, task, denoiser, episodes, 4242, mode, 64,
+    episodes = ge.eval_episodes(spec.grid_config(), 64, seed=4242)
+    rollout, _ = ge.evaluate_mode(spec, task, denoiser, episodes, 4242, mode, 64,
                                   progress=False)
     m = trajectory_metrics(rollout.positions, rollout.steps, episodes.target,
                            episodes.expert_path, episodes.reference)
-    assert m["SR"] >= 95.0 and m["SR_ordered"] >= 95.0, (mode, m)
+    assert m["SR"] >= MIN_SR and m["SR_ordered"] >= MIN_SR, (mode, m)
     return episodes, rollout
 
 

@@ -1,5 +1,7 @@
 """experiments.sweep end to end on a tiny model: rows, JSON, CSV, figures, compilation reuse,
-bad configurations refused in one line, and per-episode results on 2 devices equal to 1."""
+bad configurations refused in one line, per-episode results on 2 devices equal to 1, the shipped
+sweep files unchanged in meaning, and a Kuka sweep (shipped checkpoint) whose rows equal the
+Kuka CLI's rows of the same columns."""
 import csv
 import json
 import os
@@ -10,8 +12,8 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import compile_common as cc
-from experiments import sweep
+from experiments import sweep, sweep_config
+from experiments.gridworld_spec import SPECS, train_setting
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -19,7 +21,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep") / "tiny"
-    cc.train_setting(cc.SPECS["p_mo2g"], str(out), steps=2, progress=False, model_size="tiny")
+    train_setting(SPECS["p_mo2g"], str(out), steps=2, progress=False, model_size="tiny")
     return str(out)
 
 
@@ -35,6 +37,7 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     rows = result["rows"]
     assert [(r["modes"], r["seed"]) for r in rows] == [("warm_start", 5), ("warm_start", 6),
                                                       ("one_shot", 5), ("one_shot", 6)]
+    assert {(r["task"], r["setting"]) for r in rows} == {("gridworld/p_mo2g", "p_mo2g")}
     # The second seed of a configuration reuses the compiled evaluation.
     assert rows[0]["compile_seconds"] > 0 and rows[1]["compile_seconds"] == 0
     assert rows[2]["compile_seconds"] > 0 and rows[3]["compile_seconds"] == 0
@@ -62,6 +65,14 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     ({"bogus": 1}, "unknown keys"),
     ({"warm_num_steps": 3, "warm_start_step": 3}, "warm_start_step"),
     ({"num_steps": 500}, "exceeds the denoiser's schedule"),
+    ({"task": "kuka/pushing"}, "task must be one of"),
+    ({"task": "gridworld/mo1g", "setting": "p_mo2g"}, "contradicts task"),
+    ({"task": "kuka/stacking", "eta": 1.0}, "do not apply to kuka/stacking"),
+    ({"setting": "mo1g", "carry": "arc"}, "do not apply to gridworld/mo1g"),
+    ({"task": "kuka/stacking", "modes": "warm_start"}, "modes must be one planning mode"),
+    ({"task": "kuka/rearrangement", "multi": "yes"}, "multi must be bool"),
+    ({"task": "kuka/stacking", "language": "french"}, "language must be one of"),
+    ({"task": "kuka/stacking", "num_steps": 500}, "exceeds its schedule"),
 ])
 def test_bad_configurations_are_refused_in_one_line(tmp_path, capsys, config, message):
     path = tmp_path / "bad.json"
@@ -78,16 +89,17 @@ def test_shipped_sweep_file_is_valid():
         configs = json.load(f)
     assert len(configs) == 12
     for i, c in enumerate(configs):
-        sweep.normalise(c, i)
+        sweep_config.normalise(c, i)
 
 
 @pytest.mark.parametrize("mode", ["on_the_fly", "warm_start", "k_shot"])
 def test_missing_keys_take_the_experiment_clis_defaults(mode):
     """A configuration of a mode alone plans as the experiment CLI's row of that mode does
     (warm start: its cheap schedule, re-planning on change; on-the-fly: before every move)."""
-    config = sweep.normalise({"modes": mode}, 0)
-    assert sweep.planner_config(config) == cc.SPECS["p_mo2g"].planner_config(mode)
-    assert config["replan"] == cc.SPECS["p_mo2g"].replan_of(mode)
+    config = sweep_config.normalise({"modes": mode}, 0)
+    assert sweep_config.planner_config(config) == SPECS["p_mo2g"].planner_config(mode)
+    assert config["replan"] == SPECS["p_mo2g"].replan_of(mode)
+    assert config["task"] == "gridworld/p_mo2g"
 
 
 def test_two_devices_give_the_single_device_episodes(tiny_checkpoint, tmp_path):
@@ -120,7 +132,7 @@ def test_cheap_replanning_sweeps_are_valid_and_keep_their_seeds(name, seeds):
     with open(os.path.join(REPO, "experiments", "sweeps", name)) as f:
         configs = json.load(f)
     for i, c in enumerate(configs):
-        sweep.normalise(c, i)
+        sweep_config.normalise(c, i)
     assert {c["seed"] for c in configs} == seeds
 
 
@@ -129,7 +141,7 @@ def test_shipped_sweep_rows_match_their_configurations():
     shipped file, in order, and its cheapest row (the default warm start) within 0.5 SR points
     of paper-style on-the-fly at <= 10% of its denoiser calls (the issue's Pareto point)."""
     with open(os.path.join(REPO, "experiments", "sweeps", "p_mo2g_pareto.json")) as f:
-        configs = [sweep.normalise(c, i) for i, c in enumerate(json.load(f))]
+        configs = [sweep_config.normalise(c, i) for i, c in enumerate(json.load(f))]
     with open(os.path.join(REPO, "docs", "data", "p_mo2g_pareto_seed2001.json")) as f:
         rows = json.load(f)["rows"]
     assert len(rows) == len(configs)
@@ -142,3 +154,80 @@ def test_shipped_sweep_rows_match_their_configurations():
     cheapest = min(rows, key=lambda r: r["denoiser_calls_per_episode"])
     assert cheapest["SR"] >= paper["SR"] - 0.5
     assert cheapest["denoiser_calls_per_episode"] <= 0.1 * paper["denoiser_calls_per_episode"]
+
+
+@pytest.mark.parametrize("name", sorted(os.listdir(os.path.join(REPO, "experiments", "sweeps"))))
+def test_setting_configurations_mean_their_grid_world_task(name):
+    """The shipped sweep files name a "setting": each configuration means what it meant (the
+    grid world's keys and defaults) and equals the same configuration naming its task."""
+    with open(os.path.join(REPO, "experiments", "sweeps", name)) as f:
+        configs = json.load(f)
+    for i, raw in enumerate(configs):
+        by_setting = sweep_config.normalise(raw, i)
+        task = {k: v for k, v in raw.items() if k != "setting"}
+        task["task"] = f"gridworld/{raw['setting']}"
+        assert sweep_config.normalise(task, i) == by_setting
+        assert set(by_setting) == {"task"} | set(sweep_config.GRID_DEFAULTS)
+        assert by_setting["setting"] == raw["setting"]
+        spec = sweep_config.spec_of(by_setting)
+        assert spec.setting == raw["setting"]
+        assert sweep_config.planner_config(by_setting) == spec.planner_config(raw["modes"])
+
+
+def test_command_line_values_expand_for_every_world():
+    configs = sweep_config.expand({"task": "kuka/stacking,kuka/rearrangement",
+                                   "multi": "true,False", "episodes": "4"})
+    assert [(c["task"], c["multi"]) for c in configs] == [
+        ("kuka/stacking", True), ("kuka/stacking", False), ("kuka/rearrangement", True),
+        ("kuka/rearrangement", False)]
+    full = sweep_config.normalise(configs[0], 0)
+    assert full == {"task": "kuka/stacking", **sweep_config.KUKA_DEFAULTS, "multi": True,
+                    "episodes": 4}
+    with pytest.raises(sweep_config.SweepError, match="--multi: 'maybe' is not a bool"):
+        sweep_config.expand({"multi": "maybe"})
+
+
+def _recomputed_kuka_sr(states) -> float:
+    import kuka_fixtures as kf
+
+    held = [kf.numpy_on(states["block_pos"][i], states["held"][i], top, bottom)
+            for i, c in enumerate(states["constraints"]) for top, bottom in c if top >= 0]
+    return 100.0 * sum(held) / len(held)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")
+def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
+    """A 2-configuration Kuka sweep (on-the-fly single-constraint and one-shot multi-constraint
+    stacking, the shipped checkpoint, 4 episodes) writes rows of strict SR, Diffuser's SR and
+    denoiser calls equal to `kuka_stacking`'s rows of the same columns and seed, and per
+    configuration the final states (contract 4) from which its SR recomputes."""
+    import kuka_fixtures as kf
+    from experiments import kuka_cli
+
+    common = {"task": "kuka/stacking", "episodes": 4, "seed": 7, "batch_size": kf.BATCH}
+    path = tmp_path / "kuka.json"
+    path.write_text(json.dumps([{**common, "modes": "on_the_fly"},
+                                {**common, "modes": "one_shot", "multi": True}]))
+    result = sweep.main(["--config", str(path), "--json", str(tmp_path / "s.json"),
+                         "--csv", str(tmp_path / "s.csv"), "--trajectories",
+                         str(tmp_path / "states"), "--no-progress"])
+    rows = result["rows"]
+    assert json.loads((tmp_path / "s.json").read_text())["rows"] == json.loads(json.dumps(rows))
+    assert [(r["modes"], r["multi"], r["column"]) for r in rows] == [
+        ("on_the_fly", False, "single"), ("one_shot", True, "multi")]
+    assert rows[1]["denoiser_calls_per_episode"] == 10.0
+    with open(tmp_path / "s.csv") as f:
+        header = next(csv.reader(f))
+    assert {"task", "multi", "SR", "SR_diffuser"} <= set(header) and "path_f1" not in header
+    cli = kuka_cli.main("stacking", ["--episodes", "4", "--seed", "7", "--batch-size",
+                                     str(kf.BATCH), "--no-progress"])
+    by_column = {(r["mode"], r["column"]): r for r in cli["rows"][1:]}
+    for i, row in enumerate(rows):
+        want = by_column[row["modes"], row["column"]]
+        for key in ("method", "constraints", "SR", "SR_diffuser", "all_constraints", "tower",
+                    "placements_per_episode", "denoiser_calls_per_episode",
+                    "plans_per_episode"):
+            assert row[key] == want[key], (key, row, want)
+        with np.load(tmp_path / "states" / f"config_{i:03d}.npz") as f:
+            states = {k: f[k] for k in f.files}
+        assert row["SR"] == pytest.approx(_recomputed_kuka_sr(states), abs=1e-9)

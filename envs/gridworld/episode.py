@@ -271,3 +271,18 @@ def generate_batch(key, config: GridConfig, n: int) -> Episode:
     """n episodes from one key (episode i uses fold_in(key, i): any prefix is stable)."""
     keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(jnp.arange(n))
     return jax.vmap(generate, in_axes=(0, None))(keys, config)
+
+
+def fingerprints(episodes: Episode) -> list[bytes]:
+    """One 16-byte digest per episode (numpy or jax arrays with a leading axis): equal
+    digests mean equal episodes (grid, agent, target, reference, instruction), the content a
+    planner is evaluated on (the expert path follows from it)."""
+    import hashlib
+
+    fields = (episodes.grid, episodes.agent, episodes.target, episodes.reference,
+              episodes.tokens)
+    n = int(np.shape(episodes.agent)[0])
+    rows = np.concatenate([np.asarray(f).reshape(n, -1).astype(np.int16) for f in fields],
+                          axis=1)
+    return [hashlib.blake2b(row.tobytes(), digest_size=16).digest() for row in rows]
+

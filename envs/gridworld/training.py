@@ -12,6 +12,7 @@ never of the form ``fold_in(PRNGKey(seed), i)`` that evaluation episodes use.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -24,9 +25,11 @@ from envs.gridworld.task import NUM_GEN_CHANNELS, condition_from_observation
 TRAIN_STREAM = 0x7EA1
 TRAINING_MIXTURE = (("p_mo2g", 36), ("mo1g", 18), ("1o1g", 10))
 """Examples of each setting per batch of 64 (one denoiser serves the three settings)."""
+EXAMPLE_KEYS = 5
+"""An example's key splits into this many; the first generates its episode."""
 
 
-def _state_along_expert(episode: Episode, config: GridConfig, index):
+def state_along_expert(episode: Episode, config: GridConfig, index):
     """The state after following the expert path for ``index`` moves (int32 ())."""
     positions = episode.expert_positions  # (P, 2)
     steps = jnp.arange(positions.shape[0])
@@ -90,11 +93,11 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
 
     Returns (x0 float32 (H, W, C + 3), tokens int32 (L,), seen bool (H, W)).
     """
-    k_episode, k_index, k_detour, k_moves, k_walk = jax.random.split(key, 5)
+    k_episode, k_index, k_detour, k_moves, k_walk = jax.random.split(key, EXAMPLE_KEYS)
     episode = generate(k_episode, config)
     length = jnp.maximum(episode.expert_length, 1)
     index = jax.random.randint(k_index, (), 0, length)
-    state = _state_along_expert(episode, config, index)
+    state = state_along_expert(episode, config, index)
     if detour_prob > 0:
         detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done
         num_moves = jnp.where(detour, jax.random.randint(k_moves, (), 1, max_detour + 1), 0)
@@ -210,3 +213,50 @@ class Recipe:
         return {"mixture": [list(m) for m in self.mixture], "goal_channel": self.goal_channel,
                 "detour_prob": self.detour_prob, "goal_loss_weight": self.goal_loss_weight,
                 "num_gen_channels": NUM_GEN_CHANNELS}
+
+
+# ------------------------------------------------------------------ the episodes of a run
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 4))
+def _episodes_of_steps(step_ids, seed, config: GridConfig, index: int, count: int) -> Episode:
+    """The episodes of one setting (mixture position ``index``, ``count`` per batch) in the
+    batches of training steps ``step_ids`` (S,) of a run of ``seed``: (S * count,) episodes."""
+    from diffplan.train_state import step_key
+
+    def one(step):
+        batch_key = jax.random.split(step_key(seed, step))[0]
+        keys = training_episode_keys(jax.random.fold_in(batch_key, index), count)
+        episode_keys = jax.vmap(lambda k: jax.random.split(k, EXAMPLE_KEYS)[0])(keys)
+        return jax.vmap(lambda k: generate(k, config))(episode_keys)
+
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), jax.vmap(one)(step_ids))
+
+
+def training_episodes(setting: str, *, seed: int, steps: int, batch_size: int,
+                      mixture=TRAINING_MIXTURE, chunk: int = 500) -> Episode:
+    """Every episode of ``setting`` that a training run with this mixture saw (as numpy, a
+    leading axis of steps x examples per batch), recomputed from the keys the training loop
+    gives its steps (``diffplan.train_state.step_key``; the denoiser's step splits it into
+    (batch key, loss key), ``make_mixture_batch_fn`` folds the setting's index into the batch
+    key, and each example generates its episode from the first of its keys).
+    tests/test_training_disjoint.py checks this against the episodes that ``diffplan.train``
+    really generates."""
+    import numpy as np
+
+    names = [name for name, _ in mixture]
+    if setting not in names:
+        raise ValueError(f"{setting!r} is not in the training mixture {mixture}")
+    index = names.index(setting)
+    total = sum(count for _, count in mixture)
+    if batch_size % total:
+        raise ValueError(f"batch size {batch_size} is not a multiple of the mixture's {total}")
+    count = dict(mixture)[setting] * (batch_size // total)
+    config = make_config(setting)
+
+    parts = []
+    for lo in range(0, steps, chunk):
+        ids = np.arange(lo, lo + chunk)  # fixed size: one compilation; the tail is dropped
+        parts.append(jax.device_get(_episodes_of_steps(ids, seed, config, index, count)))
+    episodes = jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
+    return jax.tree.map(lambda x: x[:steps * count], episodes)
+

@@ -10,19 +10,14 @@ def make(kind: str, **overrides):
     field (multi: several instructed relations, default False; language) go to the task spec,
     those naming a ``KukaTask`` field (follow_path) to the planner task; unknown names raise a
     ValueError."""
-    import dataclasses
     import functools
 
     from envs.kuka.config import TaskSpec
     from envs.kuka.episode import generate
     from envs.kuka.task import KukaTask
+    from envs.overrides import split_overrides
 
-    task_fields = {f.name for f in dataclasses.fields(KukaTask)}
-    spec_fields = {f.name for f in dataclasses.fields(TaskSpec)} - {"kind"}
-    unknown = sorted(set(overrides) - task_fields - spec_fields)
-    if unknown:
-        raise ValueError(f"unknown override(s) {unknown} for kuka/{kind}; the task takes "
-                         f"{sorted(task_fields)}, the task spec {sorted(spec_fields)}")
-    spec = TaskSpec(kind, **{k: v for k, v in overrides.items() if k in spec_fields})
-    task = KukaTask(**{k: v for k, v in overrides.items() if k in task_fields})
-    return task, functools.partial(generate, spec=spec)
+    parts = split_overrides(f"kuka/{kind}", overrides, task=(KukaTask, ()),
+                            spec=(TaskSpec, {"kind"}))
+    spec = TaskSpec(kind, **parts["spec"])
+    return KukaTask(**parts["task"]), functools.partial(generate, spec=spec)

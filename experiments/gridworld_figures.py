@@ -24,7 +24,7 @@ def write_figures(out_dir, spec, task, denoiser, episodes, seed, count):
     import matplotlib.pyplot as plt
 
     from envs.gridworld import env, grammar, render
-    from experiments.compile_common import evaluate_mode
+    from experiments.gridworld_eval import evaluate_mode
 
     os.makedirs(out_dir, exist_ok=True)
     subset = jax.tree.map(lambda x: x[:count], episodes)

@@ -1,0 +1,142 @@
+"""The CompILE grid-world experiments (the paper's Tables 1, 4 and 6): ``experiments.compile_1o1g``,
+``compile_mo1g`` and ``compile_p_mo2g`` call :func:`main`: load (or train) the denoiser, evaluate
+it on fresh seeded episodes in every planning mode, print a table, write JSON (contract 2 of
+docs/DESIGN.md), and optionally the executed trajectories, a profile and figures.
+
+Seeds: see experiments.harness. Training draws its examples from ``fold_in(step_key,
+TRAIN_STREAM)`` keys of its own seed (``envs.gridworld.training``), so training never sees the
+evaluation episodes (tests/test_compile_experiments.py checks a sample for overlap).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Sequence
+
+from experiments import cli, gridworld_eval as ge, harness
+from experiments.gridworld_flags import build_parser, check_args
+from experiments.gridworld_spec import (METHOD_NAMES, MODE_REPLAN, SPECS, TRIGGER_WORDS,
+                                        load_checked, train_setting)
+
+
+def _denoiser(spec, args, modes, parser, progress):
+    """(checkpoint, train seconds or None, LoadedDenoiser): --train's result or a checkpoint."""
+    if not args.train:
+        checkpoint = args.checkpoint or spec.default_checkpoint()
+        return checkpoint, None, load_checked(checkpoint, spec, modes, parser)
+    from diffplan.train import ConfigMismatchError
+
+    spec = dataclasses.replace(spec, prediction=args.prediction)
+    checkpoint = args.train_dir or spec.default_train_dir()
+    try:
+        _, _, seconds = train_setting(spec, checkpoint, seed=args.train_seed,
+                                      steps=args.train_steps, progress=progress,
+                                      model_size=args.model_size,
+                                      checkpoint_every=args.checkpoint_every)
+    except ConfigMismatchError as e:
+        harness.fail(str(e))
+    return checkpoint, seconds, load_checked(checkpoint, spec, modes, parser)
+
+
+def _result(spec, args, seeds, modes, main_mode, checkpoint, train_seconds, rows) -> dict:
+    return {
+        "experiment": spec.name,
+        "episodes": args.episodes,
+        "seed": seeds[0],
+        "seeds": list(seeds),
+        "validation": bool(harness.VALIDATION_SEED in seeds),
+        "setting": spec.setting,
+        "checkpoint": os.path.relpath(checkpoint, harness.REPO_ROOT) if checkpoint else None,
+        "num_steps": spec.num_steps,
+        "warm_start_step": spec.warm_start_step,
+        "warm_num_steps": spec.warm_num_steps or spec.num_steps,
+        "noise": "fresh" if spec.fresh_noise else "episode",
+        "eta": spec.eta,
+        "replan": {mode: spec.replan_of(mode) for mode in modes if mode in MODE_REPLAN},
+        "trajectories_method": METHOD_NAMES[main_mode],
+        "train_seconds": train_seconds,
+        "machine": harness.machine(),
+        "rows": rows,
+    }
+
+
+def _print_summary(spec, args, seeds, result) -> None:
+    triggers = "; ".join(f"{METHOD_NAMES[m]} re-plans {TRIGGER_WORDS[r]}"
+                         for m, r in result["replan"].items())
+    print(f"\n{spec.name}: {args.episodes} episodes per seed, seed(s) "
+          f"{','.join(map(str, seeds))}, {spec.num_steps} denoising steps per plan (warm start: "
+          f"{result['warm_num_steps']}-step schedule from step {spec.warm_start_step}), "
+          f"checkpoint {result['checkpoint']}" + (f"\n{triggers}" if triggers else ""))
+    excluded = sum(result["excluded_training_episodes"].values())
+    if excluded:
+        print(f"{excluded} of {args.episodes * len(seeds)} episodes equal a training episode of "
+              "this checkpoint and are left out of the planner's rows")
+    print(ge.format_table(result["rows"]))
+    if len(seeds) > 1:
+        print(ge.format_intervals(result["rows"], seeds))
+
+
+def main(setting: str, argv: Sequence[str] | None = None) -> dict:
+    spec = SPECS[setting]
+    parser = build_parser(spec)
+    args = parser.parse_args(argv)
+    modes = check_args(parser, args, spec)
+    seeds = harness.parse_seeds(parser, args)
+    spec = dataclasses.replace(spec, num_steps=args.num_steps,
+                               warm_start_step=args.warm_start_step,
+                               warm_num_steps=args.warm_num_steps,
+                               fresh_noise=args.noise == "fresh", eta=args.eta,
+                               replan=args.replan)
+    from diffplan.jax_cache import enable_compilation_cache
+
+    enable_compilation_cache()
+    progress = not args.no_progress
+    checkpoint, train_seconds, denoiser = _denoiser(spec, args, modes, parser, progress)
+
+    grid_config = spec.grid_config()
+    has_reference = grid_config.has_reference
+    task = spec.task(denoiser.num_gen_channels)
+    all_episodes = {seed: ge.eval_episodes(grid_config, args.episodes, seed) for seed in seeds}
+    # Episodes equal to one the model trained on are run (so every other episode keeps its
+    # key) but left out of the planner's rows and trajectories (the baselines, trained on
+    # data of their own, are measured on every episode).
+    keep = {seed: ~ge.training_overlap(checkpoint, setting, eps)
+            for seed, eps in all_episodes.items()}
+    per_seed = {seed: ge.select(eps, keep[seed]) for seed, eps in all_episodes.items()}
+    rows, rollouts = [], {}
+    for mode in modes:
+        outs = {seed: ge.evaluate_mode(spec, task, denoiser, eps, seed, mode, args.batch_size,
+                                       progress)
+                for seed, eps in all_episodes.items()}
+        outs = {seed: (ge.select(r, keep[seed]), t) for seed, (r, t) in outs.items()}
+        row, rollouts[mode] = ge.pooled_row(METHOD_NAMES[mode], outs, per_seed, has_reference)
+        rows.append(row)
+    if args.baselines:
+        from experiments.baselines_eval import baseline_rows
+
+        try:
+            rows += baseline_rows(setting, seeds, args.episodes, args.batch_size, progress,
+                                  methods=args.baselines, episodes_by_seed=all_episodes)
+        except (FileNotFoundError, ValueError) as e:
+            harness.fail(f"cannot evaluate the baselines: {e}")
+
+    main_mode = spec.main_mode if spec.main_mode in modes else modes[0]
+    result = _result(spec, args, seeds, modes, main_mode, checkpoint, train_seconds, rows)
+    result["excluded_training_episodes"] = {str(s): int((~k).sum()) for s, k in keep.items()}
+    _print_summary(spec, args, seeds, result)
+    if args.json:
+        cli.write_json(args.json, result)
+    if args.trajectories:
+        ge.write_trajectories(args.trajectories, rollouts[main_mode],
+                              harness.concat_trees(list(per_seed.values())), grid_config)
+        print(f"wrote {args.trajectories} ({METHOD_NAMES[main_mode]} trajectories)")
+    if args.profile:
+        ge.write_profile(args.profile, spec, task, denoiser, per_seed[seeds[0]], seeds[0],
+                         main_mode, args.batch_size)
+        print(f"wrote a profiler trace of one {METHOD_NAMES[main_mode]} batch to {args.profile}")
+    if args.figures:
+        from experiments.gridworld_figures import write_figures
+        paths = write_figures(args.figures, spec, task, denoiser, per_seed[seeds[0]], seeds[0],
+                              min(args.num_figures, args.episodes))
+        print(f"wrote {len(paths)} figures to {args.figures}")
+    return result
