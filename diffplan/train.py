@@ -39,7 +39,7 @@ __all__ = [
     "fit", "FitResult", "run_metadata", "mean_metrics",
     "NonFiniteLossError", "OutputWriteError", "ConfigMismatchError",
     # the denoiser's training
-    "train", "TrainResult", "checkpoint_metadata",
+    "train", "TrainResult", "checkpoint_metadata", "draw_batch",
     # re-exported from diffplan.train_state and diffplan.losses
     "Batch", "TrainConfig", "TrainState", "PREDICTIONS", "lr_schedule", "make_optimizer",
     "diffusion_loss", "init_train_state", "make_train_step", "step_key",
@@ -400,7 +400,7 @@ def _append_record(path: str, record: dict, last_ckpt: Optional[int]) -> None:
 # ------------------------------------------------------------------------------- the denoiser
 
 @functools.partial(jax.jit, static_argnames=("batch_fn", "batch_size", "mesh"))
-def _draw_batch(key, *, batch_fn, batch_size, mesh):
+def draw_batch(key, *, batch_fn, batch_size, mesh):
     """(batch, loss key) of a step from its key: ``batch_fn(batch key, batch_size)``."""
     batch_key, loss_key = jax.random.split(key)
     batch = shd.constrain_batch(Batch(*batch_fn(batch_key, batch_size)), mesh)
@@ -461,7 +461,7 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
                                        init_batch), cfg.num_gen_channels)
     metadata = checkpoint_metadata(model, model_config, cfg, init_batch, extra_metadata)
     hashable(model, "model")
-    draw = functools.partial(_draw_batch, batch_fn=hashable(batch_fn, "batch_fn"),
+    draw = functools.partial(draw_batch, batch_fn=hashable(batch_fn, "batch_fn"),
                              batch_size=cfg.batch_size, mesh=mesh)
     train_step = make_train_step(model, cfg, mesh=mesh)
 

@@ -93,32 +93,6 @@ def test_eager_variants_run_the_same_moves_and_calls():
         bench_eager.eager_rollout(den, config, episodes, 2, 1, 0, "torch")
 
 
-def test_bench_train_tiny_run(tmp_path):
-    """bench_train pauses the training at each evaluation and resumes it: 4 steps, evaluated
-    after 2 and 4."""
-    from experiments import bench_train
-
-    result = bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
-                               "--max-steps", "4", "--episodes", "2", "--model-size", "tiny",
-                               "--json", str(tmp_path / "b.json"), "--no-progress"])
-    assert [r["step"] for r in result["rows"]] == [2, 4]
-    assert result["steps_per_second"] > 0
-    assert json.loads((tmp_path / "b.json").read_text())["experiment"] == "bench_train"
-
-
-def test_bench_train_stops_at_target(tmp_path):
-    """--stop-at-target ends the run at the first evaluation that reaches --target (0 is
-    reached by any model), and reports that evaluation as the one that reached it."""
-    from experiments import bench_train
-
-    result = bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
-                               "--max-steps", "6", "--episodes", "2", "--model-size", "tiny",
-                               "--target", "0", "--target-metric", "SR_ordered",
-                               "--stop-at-target", "--no-progress"])
-    assert [r["step"] for r in result["rows"]] == [2]
-    assert result["reached"]["step"] == 2 and result["target_metric"] == "SR_ordered"
-
-
 def test_bench_release_says_how_to_get_torch_when_absent(monkeypatch, capsys):
     """Without torch/diffusers (CI installs neither) the benchmark says how to get them, in one
     line, and exits 2."""

@@ -1,0 +1,152 @@
+"""experiments.bench_train end to end on tiny configurations (its numbers are not checked: speed
+lives in the benchmark's output, never in tests): training to a target in either world, the time
+split of a step, and one-line errors."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import kuka_fixtures as kf
+from experiments import bench_train
+
+TINY = ["--model-size", "tiny", "--no-progress"]
+
+
+def test_bench_train_tiny_run(tmp_path):
+    """bench_train pauses the training at each evaluation and resumes it: 4 steps, evaluated
+    after 2 and 4."""
+    result = bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
+                               "--max-steps", "4", "--episodes", "2", "--model-size", "tiny",
+                               "--json", str(tmp_path / "b.json"), "--no-progress"])
+    assert [r["step"] for r in result["rows"]] == [2, 4]
+    assert result["steps_per_second"] > 0
+    data = json.loads((tmp_path / "b.json").read_text())
+    assert data["experiment"] == "bench_train" and data["world"] == "gridworld"
+    for key in ("episodes", "seed", "mode", "target_SR", "target_metric", "steps_per_second",
+                "reached", "rows", "final_metadata_step"):
+        assert key in data
+    assert data["seed"] == 1000 and data["mode"] == "warm_start" and "split" not in data
+    for row in data["rows"]:
+        assert 0 <= row["SR"] <= 100 and 0 <= row["SR_ordered"] <= 100
+
+
+def test_bench_train_stops_at_target(tmp_path):
+    """--stop-at-target ends the run at the first evaluation that reaches --target (0 is
+    reached by any model), and reports that evaluation as the one that reached it."""
+    result = bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
+                               "--max-steps", "6", "--episodes", "2", "--model-size", "tiny",
+                               "--target", "0", "--target-metric", "SR_ordered",
+                               "--stop-at-target", "--no-progress"])
+    assert [r["step"] for r in result["rows"]] == [2]
+    assert result["reached"]["step"] == 2 and result["target_metric"] == "SR_ordered"
+
+
+def test_every_target_metric_must_reach_the_target():
+    """--target-metric SR,SR_ordered asks both; Kuka's SR asks it in every column."""
+    from experiments import bench_train_worlds as bw
+
+    grid, kuka = bw.WORLDS["gridworld"], bw.WORLDS["kuka"]
+    row = {"SR": 100.0, "SR_ordered": 98.0}
+    assert bw.reached(grid, row, ["SR"], 99) and bw.reached(grid, row, ["SR"], 100)
+    assert not bw.reached(grid, row, ["SR", "SR_ordered"], 99)
+    assert bw.reached(grid, row, ["SR", "SR_ordered"], 98)
+    kuka_row = {"SR": 99.5, "SR_min": 98.0,
+                "SR_columns": {"a": 100.0, "b": 100.0, "c": 100.0, "d": 98.0}}
+    assert not bw.reached(kuka, kuka_row, ["SR"], 99) and bw.reached(kuka, kuka_row, ["SR"], 98)
+
+
+def test_train_dir_of_other_settings_is_refused_in_one_line(tmp_path, capsys):
+    """A --train-dir holding a training of other settings (here another batch size) ends in
+    one line naming the clash, not a traceback."""
+    from experiments import bench_train_worlds as bw
+
+    class Stop(Exception):
+        pass
+
+    def stop(step, record):
+        raise Stop()  # after the first checkpoint, step 2
+
+    with pytest.raises(Stop):
+        bw.run_training(bw.WORLDS["gridworld"], str(tmp_path / "t"), model_size="tiny",
+                        checkpoint_every=2, progress=False, callback=stop)
+    with pytest.raises(SystemExit) as exc:
+        bench_train.main(["--train-dir", str(tmp_path / "t"), "--eval-every", "2",
+                          "--max-steps", "2", "--episodes", "2", "--batch-size", "128", *TINY])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "batch_size" in err[0]
+
+
+@pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
+def test_bench_train_kuka_tiny_run(tmp_path):
+    """Kuka: 2 steps of a tiny model (batch 8, one example per task spec), evaluated on one
+    validation episode per Table 2 column with on-the-fly planning under physics."""
+    from envs.kuka.config import COLUMNS
+
+    result = bench_train.main(["--world", "kuka", "--train-dir", str(tmp_path / "t"),
+                               "--eval-every", "2", "--max-steps", "2", "--episodes", "1",
+                               "--batch-size", "8", "--target", "0", *TINY,
+                               "--json", str(tmp_path / "k.json")])
+    data = json.loads((tmp_path / "k.json").read_text())
+    assert data == json.loads(json.dumps(result))
+    assert data["world"] == "kuka" and data["mode"] == "on_the_fly"
+    assert data["batch_size"] == 8 and data["seed"] == 1000
+    assert data["final_metadata_step"] == 2 and [r["step"] for r in data["rows"]] == [2]
+    row = data["rows"][0]
+    assert set(row["SR_columns"]) == set(COLUMNS)
+    for value in [row["SR"], row["SR_min"], *row["SR_columns"].values()]:
+        assert 0.0 <= value <= 100.0
+    assert row["SR_min"] == min(row["SR_columns"].values())
+    assert data["reached"]["step"] == 2  # target 0: reached at the first evaluation
+
+
+@pytest.mark.parametrize("world", ["gridworld", "kuka"])
+def test_bench_train_split_only(world, tmp_path):
+    """--split-only: every part takes time, no part exceeds the full step by much, and the
+    sustained training loop reports its windows; nothing is trained into --train-dir."""
+    batch = "64" if world == "gridworld" else "8"
+    result = bench_train.main(["--world", world, "--split-only", "--batch-size", batch,
+                               "--split-seconds", "2", "--split-window", "1",
+                               "--split-repeats", "2", "--train-dir", str(tmp_path / "t"),
+                               *TINY, "--json", str(tmp_path / "s.json")])
+    split = json.loads((tmp_path / "s.json").read_text())["split"]
+    assert result["split_only"] and "rows" not in result
+    assert not (tmp_path / "t").exists()
+    parts = {p["part"]: p for p in split["parts"]}
+    assert list(parts) == ["generation", "forward", "forward+backward", "full step"]
+    full = parts["full step"]["ms"]
+    assert all(p["ms"] > 0 for p in parts.values())
+    for name in ("generation", "forward", "forward+backward"):
+        assert parts[name]["ms"] <= 1.5 * full, (name, parts)
+    assert parts["full step"]["share"] == pytest.approx(100.0)
+    assert split["steps_per_second"] == pytest.approx(1000.0 / full)
+    assert split["examples_per_second"] == pytest.approx(1000.0 * int(batch) / full)
+    sustained = split["sustained"]
+    assert sustained["seconds"] >= 2 and sustained["steps"] > 0
+    assert sustained["windows"] and all(w["steps_per_second"] > 0 for w in sustained["windows"])
+    assert sum(w["steps"] for w in sustained["windows"]) == sustained["steps"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--world", "mars"], "--world"),
+    (["--target", "101"], "--target"),
+    (["--target-metric", "SR,GD"], "--target-metric"),
+    (["--target-metric", "SR,SR"], "--target-metric"),
+    (["--world", "kuka", "--target-metric", "SR_ordered"], "--target-metric"),
+    (["--world", "kuka", "--mode", "warm_start"], "--mode"),
+    (["--mode", "one_shot"], "--mode"),
+    (["--batch-size", "32"], "--batch-size"),
+    (["--world", "kuka", "--batch-size", "12"], "--batch-size"),
+    (["--eval-every", "3", "--max-steps", "4"], "--max-steps"),
+    (["--episodes", "0"], "--episodes"),
+    (["--split-only", "--split-seconds", "0"], "--split-seconds"),
+    (["--split-only", "--split-seconds", "5", "--split-window", "10"], "--split-window"),
+    (["--split-repeats", "0"], "--split-repeats"),
+])
+def test_bench_train_rejects_bad_input_in_one_line(argv, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        bench_train.main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert message in err[-1] and err[-1].startswith("python -m experiments.bench_train: error")
