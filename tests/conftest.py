@@ -23,27 +23,6 @@ from diffplan.jax_cache import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
 
-MJX_MODULES = ("test_bench_train", "test_registry", "test_sweep")
-"""Modules besides test_kuka_*.py that compile Kuka (MJX) programs."""
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config, items):
-    """For pytest-xdist's ``--dist loadgroup`` (pyproject's addopts): every module's tests run
-    on one worker (its module-scoped fixtures are built once), and all the modules that compile
-    Kuka programs run on one worker, first: a Kuka rollout compiles in minutes and ~5 GB, and
-    modules that share one reuse it through the in-process and persistent caches instead of
-    compiling it twice at once on two workers."""
-    def group(item):
-        name = item.module.__name__.rpartition(".")[2]
-        return "mjx" if name.startswith("test_kuka") or name in MJX_MODULES else name
-
-    for item in items:
-        if item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(group(item)))
-    items[:] = sorted(items, key=lambda item: group(item) != "mjx")
-
-
 GRID_BATCH = 64
 """Episodes per generated test batch (one compilation per setting serves every seed)."""
 
