@@ -142,11 +142,7 @@ class DenoiserConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "DenoiserConfig":
         """Inverse of ``to_dict``; unknown keys raise ValueError."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown DenoiserConfig fields: {unknown}")
-        return cls(**dict(d))
+        return models.config_from_dict(cls, d)
 
 
 class Denoiser(nn.Module):

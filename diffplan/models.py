@@ -63,6 +63,15 @@ def class_path(obj_or_cls: Any) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
+def config_from_dict(cls: type, d: Mapping[str, Any]) -> Any:
+    """``cls(**d)`` for a config dataclass read from a checkpoint's metadata; keys that are not
+    fields of cls raise ValueError (one line, naming them)."""
+    unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} fields: {unknown}")
+    return cls(**dict(d))
+
+
 def denoiser_inputs(input_shapes: Mapping[str, Sequence[int]]) -> tuple:
     """The inputs of a network called like the Denoiser, ``(x_t, t, tokens)``, from the
     stored ``input_shapes`` ``{"x": [B, H, W, C+G], "tokens": [B, L]}``: float32 x, int32 t

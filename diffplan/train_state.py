@@ -111,11 +111,9 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "TrainConfig":
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"unknown TrainConfig fields: {unknown}")
-        return cls(**dict(d))
+        from diffplan.models import config_from_dict
+
+        return config_from_dict(cls, d)
 
 
 @flax.struct.dataclass
