@@ -23,6 +23,36 @@ from diffplan.jax_cache import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
 
+MJX_GROUP = "mjx"
+"""The xdist work unit of every test that compiles MuJoCo MJX programs (see
+pytest_xdist_make_scheduler)."""
+
+
+def mjx_scope(nodeid: str) -> str | None:
+    """MJX_GROUP for a test that compiles MJX programs (a tests/test_kuka_* module, or a test
+    whose id names kuka), else None."""
+    module = nodeid.split("::", 1)[0]
+    if os.path.basename(module).startswith("test_kuka_") or "kuka" in nodeid.lower():
+        return MJX_GROUP
+    return None
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """Tests by module on the workers (a module's fixtures are built once), except that every
+    test that compiles MJX programs runs on one worker, one after the other: an MJX program
+    takes ~1 min and ~5 GB to compile, the Kuka tests share many of them (in-process and
+    through the persistent compilation cache), and two workers compiling the same ones at
+    once doubled the suite's MJX time. The MJX group is the largest unit, so it starts first;
+    the other worker runs the grid-world modules meanwhile."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class MjxGroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return mjx_scope(nodeid) or nodeid.split("::", 1)[0]
+
+    return MjxGroupScheduling(config, log)
+
+
 GRID_BATCH = 64
 """Episodes per generated test batch (one compilation per setting serves every seed)."""
 

@@ -11,6 +11,7 @@ import kuka_fixtures as kf
 from experiments import bench_train
 
 TINY = ["--model-size", "tiny", "--no-progress"]
+SPLIT = ["--split-seconds", "2", "--split-window", "1", "--split-repeats", "2"]
 
 
 def test_bench_train_tiny_run(tmp_path):
@@ -80,14 +81,17 @@ def test_train_dir_of_other_settings_is_refused_in_one_line(tmp_path, capsys):
 
 @pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 def test_bench_train_kuka_tiny_run(tmp_path):
-    """Kuka: 2 steps of a tiny model (batch 8, one example per task spec), evaluated on one
-    validation episode per Table 2 column with on-the-fly planning under physics."""
+    """Kuka: the time split of a step, then 2 steps of a tiny model (batch 8, one example per
+    task spec), evaluated on kf.BATCH validation episodes per Table 2 column with on-the-fly
+    planning under physics (the tiny model's rollout at batch kf.BATCH, the program of
+    test_kuka_experiments' planner runs)."""
     from envs.kuka.config import COLUMNS
 
     result = bench_train.main(["--world", "kuka", "--train-dir", str(tmp_path / "t"),
-                               "--eval-every", "2", "--max-steps", "2", "--episodes", "1",
-                               "--batch-size", "8", "--target", "0", *TINY,
-                               "--json", str(tmp_path / "k.json")])
+                               "--eval-every", "2", "--max-steps", "2",
+                               "--episodes", str(kf.BATCH), "--batch-size", "8", "--target",
+                               "0", *TINY, "--split", *SPLIT, "--json", str(tmp_path / "k.json")])
+    _check_split(result["split"], 8)
     data = json.loads((tmp_path / "k.json").read_text())
     assert data == json.loads(json.dumps(result))
     assert data["world"] == "kuka" and data["mode"] == "on_the_fly"
@@ -101,18 +105,21 @@ def test_bench_train_kuka_tiny_run(tmp_path):
     assert data["reached"]["step"] == 2  # target 0: reached at the first evaluation
 
 
-@pytest.mark.parametrize("world", ["gridworld", "kuka"])
-def test_bench_train_split_only(world, tmp_path):
-    """--split-only: every part takes time, no part exceeds the full step by much, and the
-    sustained training loop reports its windows; nothing is trained into --train-dir."""
-    batch = "64" if world == "gridworld" else "8"
-    result = bench_train.main(["--world", world, "--split-only", "--batch-size", batch,
-                               "--split-seconds", "2", "--split-window", "1",
-                               "--split-repeats", "2", "--train-dir", str(tmp_path / "t"),
-                               *TINY, "--json", str(tmp_path / "s.json")])
+def test_bench_train_split_only(tmp_path):
+    """--split-only: the split alone, nothing trained into --train-dir (the Kuka world's split
+    runs in test_bench_train_kuka_tiny_run, with --split)."""
+    result = bench_train.main(["--world", "gridworld", "--split-only", "--batch-size", "64",
+                               *SPLIT, "--train-dir", str(tmp_path / "t"), *TINY,
+                               "--json", str(tmp_path / "s.json")])
     split = json.loads((tmp_path / "s.json").read_text())["split"]
     assert result["split_only"] and "rows" not in result
     assert not (tmp_path / "t").exists()
+    _check_split(split, 64)
+
+
+def _check_split(split, batch):
+    """Every part takes time, no part exceeds the full step by much, and the sustained
+    training loop reports its windows."""
     parts = {p["part"]: p for p in split["parts"]}
     assert list(parts) == ["generation", "forward", "forward+backward", "full step"]
     full = parts["full step"]["ms"]
@@ -121,7 +128,7 @@ def test_bench_train_split_only(world, tmp_path):
         assert parts[name]["ms"] <= 1.5 * full, (name, parts)
     assert parts["full step"]["share"] == pytest.approx(100.0)
     assert split["steps_per_second"] == pytest.approx(1000.0 / full)
-    assert split["examples_per_second"] == pytest.approx(1000.0 * int(batch) / full)
+    assert split["examples_per_second"] == pytest.approx(1000.0 * batch / full)
     sustained = split["sustained"]
     assert sustained["seconds"] >= 2 and sustained["steps"] > 0
     assert sustained["windows"] and all(w["steps_per_second"] > 0 for w in sustained["windows"])

@@ -1,7 +1,7 @@
 """Tiny end-to-end runs of the Kuka experiment CLIs (contracts 2 and 4), recomputing the
 main row's SR from the written states with a plain-numpy check: the scripted expert, and the
-planner after `--train` of a few steps (the default model size, so that the evaluation's
-compiled rollout is the one test_kuka_shipped_checkpoint uses)."""
+planner after `--train` of a few steps of the tiny model (its on-the-fly rollout at batch
+kf.BATCH is the program test_bench_train's Kuka run evaluates with: compiled once)."""
 from __future__ import annotations
 
 import json
@@ -105,13 +105,14 @@ def test_missing_checkpoint_says_how_to_get_one(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def train_dir(tmp_path_factory):
-    """One tiny training (3 steps of the default model) shared by both experiments: the
+    """One tiny training (3 steps of the tiny model) shared by both experiments: the
     second `--train` finds it finished and evaluates it."""
     return tmp_path_factory.mktemp("kuka_train") / "run"
 
 
 def _planner_run(kind, train_dir, out, extra):
-    argv = ["--train", "--train-steps", "3", "--train-dir", str(train_dir), "--episodes", "4",
+    argv = ["--train", "--train-steps", "3", "--model-size", "tiny", "--train-dir",
+            str(train_dir), "--episodes", "4",
             "--seed", "6", "--batch-size", str(kf.BATCH), "--json", str(out / "r.json"),
             "--states", str(out / "s.npz"), "--no-progress", *extra]
     return kuka_cli.main(kind, argv)
