@@ -70,6 +70,14 @@ def build_parser():
                         "multiple of 64; 32 kuka, a multiple of 8)")
     p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default="default",
                    help="denoiser size ('tiny' is for smoke tests; default 'default')")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="change one field of the recipe's training configuration "
+                        "(TrainConfig), model (DenoiserConfig) or training data (the world's "
+                        "Recipe); repeatable, VALUE as JSON, e.g. --set steps=3000 --set "
+                        "num_train_timesteps=10 --set 'cross_attn_levels=[1,2]' --set "
+                        "'mixture=[[\"p_mo2g\",48],[\"mo1g\",10],[\"1o1g\",6]]'. The "
+                        "checkpoint records every setting, so a --train-dir of other settings "
+                        "is refused")
     split_mod.add_flags(p)
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
@@ -88,7 +96,13 @@ def check_args(parser, args):
     if args.batch_size is not None and args.batch_size % world.batch_multiple:
         parser.error(f"--batch-size must be a multiple of {world.batch_multiple} for "
                      f"{world.name}, got {args.batch_size}")
-    if (args.max_steps is not None and args.max_steps < world.train_steps
+    try:
+        _, config, _ = bw.training(world, args.model_size, 1, args.set,
+                                   batch_size=args.batch_size)
+    except ValueError as e:
+        parser.error(str(e))
+    args.recipe_steps = config.steps
+    if (args.max_steps is not None and args.max_steps < config.steps
             and args.max_steps % args.eval_every):
         parser.error(f"--max-steps ({args.max_steps}) must be a multiple of --eval-every "
                      f"({args.eval_every}): training pauses at evaluations")
@@ -111,7 +125,7 @@ def check_args(parser, args):
 def _train_to_target(world, args, metrics, mode, eval_batch, train_dir):
     """Trains with pauses at evaluations; (evaluations, the first that reached the target)."""
     progress = not args.no_progress
-    total = min(world.train_steps, args.max_steps or world.train_steps)
+    total = min(args.recipe_steps, args.max_steps or args.recipe_steps)
     evaluate = bw.evaluator(world, args.episodes, mode, eval_batch, progress)
     evaluations, reached = [], None
 
@@ -123,7 +137,8 @@ def _train_to_target(world, args, metrics, mode, eval_batch, train_dir):
         try:
             bw.run_training(world, train_dir, model_size=args.model_size,
                             checkpoint_every=args.eval_every, progress=progress,
-                            callback=pause, batch_size=args.batch_size)
+                            callback=pause, settings=args.set,
+                            batch_size=args.batch_size)
             finished = True
         except _Pause:
             finished = False
@@ -166,6 +181,7 @@ def main(argv=None) -> dict:
     world, metrics, mode, eval_batch = check_args(parser, args)
     enable_compilation_cache()
     result = {"experiment": "bench_train", "world": world.name, "model_size": args.model_size,
+              "settings": list(args.set),
               "batch_size": args.batch_size or world.default_batch,
               "machine": harness.machine()}
     if args.split or args.split_only:

@@ -51,7 +51,8 @@ def check_flags(parser, args) -> None:
         parser.error(f"--split-repeats must be >= 1, got {args.split_repeats}")
 
 
-def _parts(world, model_size: str, batch_size, repeats: int, bar) -> tuple[dict, dict, int]:
+def _parts(world, model_size: str, batch_size, repeats: int, bar, settings=()
+           ) -> tuple[dict, dict, int]:
     """({part: median ms}, {part: first-call seconds}, batch size) of the four parts."""
     import functools
 
@@ -67,7 +68,8 @@ def _parts(world, model_size: str, batch_size, repeats: int, bar) -> tuple[dict,
     from diffplan.train_state import init_train_state, step_key
 
     bar.set_postfix_str("initial state")
-    model_config, config, recipe = bw.training(world, model_size, 1, batch_size=batch_size)
+    model_config, config, recipe = bw.training(world, model_size, 1, settings,
+                                               batch_size=batch_size)
     model, mesh = Denoiser(model_config), shd.data_mesh()
     draw = functools.partial(draw_batch, batch_fn=recipe.batch_fn(),
                              batch_size=config.batch_size, mesh=mesh)
@@ -110,7 +112,7 @@ class _Stop(Exception):
 
 
 def _sustained(world, model_size: str, batch_size, seconds: float, window: float,
-               progress: bool) -> dict:
+               progress: bool, settings=()) -> dict:
     """Steps/s of the real training loop over `seconds` after its first time mark, in windows."""
     import tempfile
 
@@ -131,7 +133,8 @@ def _sustained(world, model_size: str, batch_size, seconds: float, window: float
         try:
             bw.run_training(world, out_dir, model_size=model_size,
                             checkpoint_every=world.train_steps, progress=False,
-                            callback=callback, batch_size=batch_size, log_every=SYNC_EVERY)
+                            callback=callback, settings=settings, batch_size=batch_size,
+                            log_every=SYNC_EVERY)
         except _Stop:
             pass
     if len(marks) < 2:
@@ -156,10 +159,10 @@ def measure(world, args) -> dict:
     with tqdm(total=4, desc=f"{world.name} step parts (compile, time)", unit="part",
               disable=not progress, file=sys.stderr, leave=False, dynamic_ncols=True) as bar:
         ms, compile_s, batch = _parts(world, args.model_size, args.batch_size,
-                                      args.split_repeats, bar)
+                                      args.split_repeats, bar, args.set)
     full = ms["full step"]
     sustained = _sustained(world, args.model_size, batch, args.split_seconds, args.split_window,
-                           progress)
+                           progress, args.set)
     sustained["examples_per_second"] = sustained["steps_per_second"] * batch
     return {"world": world.name, "model_size": args.model_size, "batch_size": batch,
             "repeats": args.split_repeats, "machine": harness.machine(),

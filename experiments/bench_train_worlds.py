@@ -52,10 +52,58 @@ def _grid_world() -> World:
 WORLDS = {"gridworld": _grid_world(), "kuka": _kuka_world()}
 
 
-def training(world: World, model_size: str, checkpoint_every: int, **overrides):
+def _tuples(value):
+    """JSON lists as (nested) tuples, as the frozen configs hold them."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+def parse_settings(items, recipe=None) -> tuple[dict, dict, dict]:
+    """--set FIELD=VALUE items -> ({TrainConfig field: value}, {DenoiserConfig field: value},
+    {field of the world's training-data recipe: value}); VALUE is JSON (numbers, booleans,
+    lists for tuple fields, quoted or bare strings). Raises ValueError naming an unknown field
+    or a malformed item."""
+    import dataclasses
+    import json
+
+    from diffplan.denoiser import DenoiserConfig
+    from diffplan.train_state import TrainConfig
+
+    train_fields = {f.name for f in dataclasses.fields(TrainConfig)} - {"seed"}
+    model_fields = {f.name for f in dataclasses.fields(DenoiserConfig)} - {
+        "vocab_size", "max_tokens", "num_cond_channels", "num_gen_channels"}
+    recipe_fields = ({f.name for f in dataclasses.fields(recipe)} if recipe is not None
+                     else set())
+    train, model, data = {}, {}, {}
+    for item in items or ():
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise ValueError(f"--set takes FIELD=VALUE, got {item!r}")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        value = _tuples(value)
+        if name in train_fields:
+            train[name] = value
+        elif name in model_fields:
+            model[name] = value
+        elif name in recipe_fields:
+            data[name] = value
+        else:
+            raise ValueError(f"--set {name}: not a field of the training, the model or the "
+                             f"data recipe (training: {', '.join(sorted(train_fields))}; "
+                             f"model: {', '.join(sorted(model_fields))}; recipe: "
+                             f"{', '.join(sorted(recipe_fields))})")
+    return train, model, data
+
+
+def training(world: World, model_size: str, checkpoint_every: int, settings=(), **overrides):
     """(model config, TrainConfig, recipe) of the world's default training (its whole run of
     train_steps steps, seed 0); overrides: TrainConfig fields (None: the recipe's), e.g.
-    batch_size, or log_every (which does not change the computation)."""
+    batch_size, or log_every (which does not change the computation); settings: --set items
+    (:func:`parse_settings`), applied to the TrainConfig and the DenoiserConfig (the warm-up
+    stays at most a tenth of the steps)."""
     if world.name == "kuka":
         from envs.kuka.training import Recipe
         from experiments import kuka_spec as ks
@@ -68,19 +116,25 @@ def training(world: World, model_size: str, checkpoint_every: int, **overrides):
         spec = SPECS["p_mo2g"]
         config = spec.train_config(0, None, checkpoint_every)
         model_config, recipe = spec.model_config(model_size), spec.recipe()
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    return model_config, dataclasses.replace(config, **overrides), recipe
+    train_set, model_set, recipe_set = parse_settings(settings, recipe)
+    recipe = dataclasses.replace(recipe, **recipe_set)
+    overrides = {**train_set, **{k: v for k, v in overrides.items() if v is not None}}
+    if "steps" in overrides and "warmup_steps" not in overrides:
+        overrides["warmup_steps"] = min(config.warmup_steps, overrides["steps"] // 10)
+    return (dataclasses.replace(model_config, **model_set),
+            dataclasses.replace(config, **overrides), recipe)
 
 
 def run_training(world: World, train_dir: str, *, model_size: str, checkpoint_every: int,
-                 progress: bool, callback=None, **overrides):
+                 progress: bool, callback=None, settings=(), **overrides):
     """The world's default training into train_dir (resumed; one line on a settings clash),
     the checkpoint's metadata recording the recipe and model size (recipes.train_denoiser,
     the call both worlds' --train make)."""
     from diffplan.train import ConfigMismatchError
     from experiments import recipes
 
-    model_config, config, recipe = training(world, model_size, checkpoint_every, **overrides)
+    model_config, config, recipe = training(world, model_size, checkpoint_every, settings,
+                                            **overrides)
     try:
         recipes.train_denoiser(model_config, config, recipe, train_dir, model_size=model_size,
                                progress=progress, callback=callback)

@@ -150,6 +150,10 @@ def _check_split(split, batch):
     (["--split-only", "--split-seconds", "0"], "--split-seconds"),
     (["--split-only", "--split-seconds", "5", "--split-window", "10"], "--split-window"),
     (["--split-repeats", "0"], "--split-repeats"),
+    (["--set", "colour=red"], "--set colour"),
+    (["--set", "lr"], "FIELD=VALUE"),
+    (["--set", "lr=-1"], "lr"),
+    (["--set", "cross_attn_levels=[7]"], "cross_attn_levels"),
 ])
 def test_bench_train_rejects_bad_input_in_one_line(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -157,3 +161,15 @@ def test_bench_train_rejects_bad_input_in_one_line(argv, message, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert message in err[-1] and err[-1].startswith("python -m experiments.bench_train: error")
+
+
+def test_settings_reach_the_training_and_the_model():
+    """--set FIELD=VALUE changes the TrainConfig or the DenoiserConfig of the world's recipe
+    (JSON values, lists as tuples); a shorter run keeps its warm-up within a tenth."""
+    from experiments import bench_train_worlds as bw
+
+    model, config, _ = bw.training(bw.WORLDS["gridworld"], "default", 1,
+                                   ["steps=1000", "lr=0.002", "cross_attn_levels=[1, 2]",
+                                    "ema_decay=0.99"])
+    assert (config.steps, config.lr, config.ema_decay) == (1000, 0.002, 0.99)
+    assert config.warmup_steps <= 100 and model.cross_attn_levels == (1, 2)
