@@ -174,6 +174,7 @@ def kuka_evaluator(episodes: int, mode: str, batch: int, progress: bool):
     from experiments import kuka_eval as ke, kuka_spec as ks
 
     seed, task = harness.VALIDATION_SEED, KukaTask()
+    run = harness.rollout_fn(task)  # one jitted program for every column and evaluation
     eps = {name: ke.generate_episodes(spec, episodes, seed, batch)
            for name, spec in COLUMNS.items()}
 
@@ -183,7 +184,7 @@ def kuka_evaluator(episodes: int, mode: str, batch: int, progress: bool):
         with tqdm(total=episodes * len(eps), desc=f"kuka {mode} (seed {seed})", unit="ep",
                   disable=not progress, file=sys.stderr, leave=False, dynamic_ncols=True) as bar:
             for name, column in eps.items():
-                final = ke.run_planner(task, planner, column, seed, batch, bar)
+                final = ke.run_planner(task, planner, column, seed, batch, bar, run=run)
                 strict, _ = ke.constraint_success(column, final)
                 valid = np.asarray(column.constraints)[..., 0] >= 0
                 columns[name] = 100.0 * float(strict[valid].sum()) / int(valid.sum())

@@ -46,6 +46,9 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
     """{(mode, spec): row} and {(mode, spec): (episodes, final)} of every mode and column,
     pooled over the seeds (mode None: the expert)."""
     rows, finals = {}, {}
+    # One jitted rollout for every mode, column and seed: a fresh jax.jit per call would trace
+    # and lower the MJX program again each time (~15-20 s each).
+    run = harness.rollout_fn(task) if denoiser is not None else None
     for mode in modes:
         planner = None
         if denoiser is not None:
@@ -56,7 +59,7 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
             for seed in seeds:
                 t0 = time.time()
                 eps = episodes[spec, seed]
-                final = (ke.run_planner(task, planner, eps, seed, args.batch_size, bar)
+                final = (ke.run_planner(task, planner, eps, seed, args.batch_size, bar, run=run)
                          if planner is not None else ke.run_expert(eps, args.batch_size, bar))
                 per_seed[seed] = ke.column_metrics("", "", eps, final, time.time() - t0)
                 parts.append(final)
