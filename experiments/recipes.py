@@ -34,15 +34,16 @@ def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_cha
 
 def train_config(*, seed: int, steps: int, batch_size: int, lr: float, warmup_steps: int,
                  num_gen_channels: int, prediction: str, checkpoint_every: int,
-                 max_log_every: int):
+                 max_log_every: int, num_train_timesteps: int = 100):
     """The TrainConfig of an experiment: warm-up at most a tenth of the steps, a log every
-    min(max_log_every, steps / 10) steps, 100 diffusion training timesteps."""
+    min(max_log_every, steps / 10) steps, num_train_timesteps diffusion training timesteps
+    (the paper's 100 unless the world's spec says otherwise)."""
     from diffplan.train import TrainConfig
 
     return TrainConfig(seed=seed, steps=steps, batch_size=batch_size, lr=lr,
                        warmup_steps=min(warmup_steps, max(steps // 10, 0)),
                        num_gen_channels=num_gen_channels, prediction=prediction,
-                       num_train_timesteps=100, checkpoint_every=checkpoint_every,
+                       num_train_timesteps=num_train_timesteps, checkpoint_every=checkpoint_every,
                        log_every=max(1, min(max_log_every, steps // 10)))
 
 
