@@ -13,7 +13,7 @@ import dataclasses
 import os
 import sys
 
-from experiments import harness
+from experiments import harness, recipes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +57,7 @@ def _tuples(value):
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
-def parse_settings(items, recipe=None) -> tuple[dict, dict, dict]:
+def parse_settings(items, recipe) -> tuple[dict, dict, dict]:
     """--set FIELD=VALUE items -> ({TrainConfig field: value}, {DenoiserConfig field: value},
     {field of the world's training-data recipe: value}); VALUE is JSON (numbers, booleans,
     lists for tuple fields, quoted or bare strings). Raises ValueError naming an unknown field
@@ -71,8 +71,7 @@ def parse_settings(items, recipe=None) -> tuple[dict, dict, dict]:
     train_fields = {f.name for f in dataclasses.fields(TrainConfig)} - {"seed"}
     model_fields = {f.name for f in dataclasses.fields(DenoiserConfig)} - {
         "vocab_size", "max_tokens", "num_cond_channels", "num_gen_channels"}
-    recipe_fields = ({f.name for f in dataclasses.fields(recipe)} if recipe is not None
-                     else set())
+    recipe_fields = {f.name for f in dataclasses.fields(recipe)}
     train, model, data = {}, {}, {}
     for item in items or ():
         name, sep, text = item.partition("=")
@@ -102,8 +101,8 @@ def training(world: World, model_size: str, checkpoint_every: int, settings=(), 
     """(model config, TrainConfig, recipe) of the world's default training (its whole run of
     train_steps steps, seed 0); overrides: TrainConfig fields (None: the recipe's), e.g.
     batch_size, or log_every (which does not change the computation); settings: --set items
-    (:func:`parse_settings`), applied to the TrainConfig and the DenoiserConfig (the warm-up
-    stays at most a tenth of the steps)."""
+    (:func:`parse_settings`), applied to the TrainConfig, the DenoiserConfig and the recipe
+    (the warm-up stays at most a tenth of the steps, recipes.warmup)."""
     if world.name == "kuka":
         from envs.kuka.training import Recipe
         from experiments import kuka_spec as ks
@@ -120,7 +119,7 @@ def training(world: World, model_size: str, checkpoint_every: int, settings=(), 
     recipe = dataclasses.replace(recipe, **recipe_set)
     overrides = {**train_set, **{k: v for k, v in overrides.items() if v is not None}}
     if "steps" in overrides and "warmup_steps" not in overrides:
-        overrides["warmup_steps"] = min(config.warmup_steps, overrides["steps"] // 10)
+        overrides["warmup_steps"] = recipes.warmup(config.warmup_steps, overrides["steps"])
     return (dataclasses.replace(model_config, **model_set),
             dataclasses.replace(config, **overrides), recipe)
 
@@ -131,7 +130,6 @@ def run_training(world: World, train_dir: str, *, model_size: str, checkpoint_ev
     the checkpoint's metadata recording the recipe and model size (recipes.train_denoiser,
     the call both worlds' --train make)."""
     from diffplan.train import ConfigMismatchError
-    from experiments import recipes
 
     model_config, config, recipe = training(world, model_size, checkpoint_every, settings,
                                             **overrides)

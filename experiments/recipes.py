@@ -32,6 +32,11 @@ def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_cha
                           **MODEL_SIZES[size])
 
 
+def warmup(warmup_steps: int, steps: int) -> int:
+    """The warm-up of a run of ``steps`` steps: at most a tenth of them."""
+    return min(warmup_steps, max(steps // 10, 0))
+
+
 def train_config(*, seed: int, steps: int, batch_size: int, lr: float, warmup_steps: int,
                  num_gen_channels: int, prediction: str, checkpoint_every: int,
                  max_log_every: int, num_train_timesteps: int = 100):
@@ -41,7 +46,7 @@ def train_config(*, seed: int, steps: int, batch_size: int, lr: float, warmup_st
     from diffplan.train import TrainConfig
 
     return TrainConfig(seed=seed, steps=steps, batch_size=batch_size, lr=lr,
-                       warmup_steps=min(warmup_steps, max(steps // 10, 0)),
+                       warmup_steps=warmup(warmup_steps, steps),
                        num_gen_channels=num_gen_channels, prediction=prediction,
                        num_train_timesteps=num_train_timesteps, checkpoint_every=checkpoint_every,
                        log_every=max(1, min(max_log_every, steps // 10)))
