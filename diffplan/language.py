@@ -13,12 +13,22 @@ punctuation tokens '.' and ','; decoding re-attaches punctuation and capitalises
 """
 from __future__ import annotations
 
+import dataclasses
 import re
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
 PAD_ID = 0
+
+LANGUAGES = ("canonical", "paraphrased", "unseen")
+"""How an episode's instruction is phrased, in both worlds: ``canonical`` in each sentence's
+template 0 (the paper's wording); ``paraphrased`` in a uniformly drawn training paraphrase (never
+template 0); ``unseen`` in a uniformly drawn held-out phrasing that no training batch ever
+contains (every word of it occurs in a training phrasing: new wording, not new words)."""
+TRAINING = "mixed"
+"""The phrasing of training examples (not an evaluation language): canonical half of the time,
+otherwise a uniformly drawn training paraphrase (:meth:`TemplateSplit.pool`)."""
 
 _WORD_RE = re.compile(r"\{[a-z]+\}|[a-z]+|[.,]|[^\sa-z.,]+")
 
@@ -145,3 +155,91 @@ def lengths_of(compiled: np.ndarray) -> np.ndarray:
 def render(template: str, fillers: Mapping[str, str]) -> str:
     """Plain-Python rendering of a template, slot names without braces (``{"target": ...}``)."""
     return template.format(**fillers)
+
+
+@dataclasses.dataclass(frozen=True)
+class TemplateSplit:
+    """Which phrasings of one sentence kind are canonical, trained on, or held out.
+
+    templates: the phrasings (template 0 canonical); unseen: the indices held out of training
+    (a fixed third, never 0). Raises ValueError if a held-out phrasing has a word (slots
+    excepted) that no training phrasing has, or if the indices are out of range.
+    """
+
+    templates: tuple[str, ...]
+    unseen: tuple[int, ...]
+    slots: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        n = len(self.templates)
+        if len(set(self.templates)) != n:
+            raise ValueError("templates must be distinct")
+        if not all(0 < i < n for i in self.unseen) or len(set(self.unseen)) != len(self.unseen):
+            raise ValueError(f"unseen must be distinct indices in 1..{n - 1}, got {self.unseen}")
+        known = template_words([self.templates[i] for i in self.training], self.slots)
+        for i in self.unseen:
+            new = sorted(template_words([self.templates[i]], self.slots) - known)
+            if new:
+                raise ValueError(f"held-out phrasing {self.templates[i]!r} has words no training "
+                                 f"phrasing has: {new}")
+
+    @property
+    def training(self) -> tuple[int, ...]:
+        """Template indices training draws from (canonical and the training paraphrases)."""
+        return tuple(i for i in range(len(self.templates)) if i not in self.unseen)
+
+    def pool(self, language: str) -> np.ndarray:
+        """int32 (P,) template indices an episode of ``language`` draws from uniformly
+        (LANGUAGES, or TRAINING: template 0 repeated once per training paraphrase, then the
+        paraphrases, so that half of the draws are canonical)."""
+        paraphrases = [i for i in self.training if i != 0]
+        pools = {"canonical": [0], "paraphrased": paraphrases, "unseen": list(self.unseen),
+                 TRAINING: [0] * len(paraphrases) + paraphrases}
+        if language not in pools:
+            raise ValueError(f"unknown language {language!r}; expected one of "
+                             f"{LANGUAGES + (TRAINING,)}")
+        return np.asarray(pools[language], np.int32)
+
+
+def check_language(language: str, training: bool = True) -> str:
+    """language if it is one of LANGUAGES (or TRAINING when ``training``), else ValueError."""
+    allowed = LANGUAGES + ((TRAINING,) if training else ())
+    if language not in allowed:
+        raise ValueError(f"unknown language {language!r}; expected one of {allowed}")
+    return language
+
+
+def draw_template(key, pool, shape=()):
+    """int32 ``shape`` template indices drawn uniformly from ``pool`` (int (P,), from
+    :meth:`TemplateSplit.pool`); a one-entry pool consumes no randomness. jit-able."""
+    import jax
+    import jax.numpy as jnp
+
+    pool = np.asarray(pool, np.int32)
+    if len(pool) == 1:
+        return jnp.full(shape, pool[0], jnp.int32)
+    return jnp.asarray(pool)[jax.random.randint(key, shape, 0, len(pool))]
+
+
+def match_template(tokens, compiled):
+    """(index, slot tokens): which compiled template (int (N, L), slot markers negative; a
+    numpy constant) the instruction tokens (int (L,)) are, and the token in each slot. index
+    is -1 when none matches; slot tokens int32 (S,) (S = the number of distinct markers), 0
+    where unmatched. jit-able in tokens; the first matching template wins, a slot's first
+    occurrence is read."""
+    import jax.numpy as jnp
+
+    compiled = np.asarray(compiled)
+    num_slots = int(-np.min(compiled, initial=0))
+    compiled = jnp.asarray(compiled)
+    tokens = jnp.asarray(tokens)
+    fixed = compiled >= 0
+    match = jnp.all(jnp.where(fixed, compiled == tokens[None], tokens[None] != PAD_ID), axis=-1)
+    index = jnp.where(jnp.any(match), jnp.argmax(match), -1)
+    row = compiled[jnp.maximum(index, 0)]
+    slots = []
+    for k in range(num_slots):
+        at = row == -(k + 1)
+        slots.append(jnp.where(jnp.any(at) & (index >= 0), tokens[jnp.argmax(at)], 0))
+    return index.astype(jnp.int32), jnp.stack(slots).astype(jnp.int32) if slots else \
+        jnp.zeros((0,), jnp.int32)

@@ -15,8 +15,9 @@ from typing import Sequence
 
 from experiments import cli, gridworld_eval as ge, harness
 from experiments.gridworld_flags import build_parser, check_args
-from experiments.gridworld_spec import (METHOD_NAMES, MODE_REPLAN, SPECS, TRIGGER_WORDS,
-                                        load_checked, train_setting)
+from experiments.gridworld_spec import (LANGUAGE_CHOICES, METHOD_NAMES, MODE_REPLAN, SPECS,
+                                        TRIGGER_WORDS, load_checked, method_name,
+                                        train_setting)
 
 
 def _denoiser(spec, args, modes, parser, progress):
@@ -46,6 +47,7 @@ def _result(spec, args, seeds, modes, main_mode, checkpoint, train_seconds, rows
         "seeds": list(seeds),
         "validation": bool(harness.VALIDATION_SEED in seeds),
         "setting": spec.setting,
+        "language": args.language,
         "checkpoint": os.path.relpath(checkpoint, harness.REPO_ROOT) if checkpoint else None,
         "num_steps": spec.num_steps,
         "warm_start_step": spec.warm_start_step,
@@ -93,33 +95,51 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     progress = not args.no_progress
     checkpoint, train_seconds, denoiser = _denoiser(spec, args, modes, parser, progress)
 
-    grid_config = spec.grid_config()
-    has_reference = grid_config.has_reference
+    languages = LANGUAGE_CHOICES[args.language]
+    has_reference = spec.grid_config().has_reference
     task = spec.task(denoiser.num_gen_channels)
-    all_episodes = {seed: ge.eval_episodes(grid_config, args.episodes, seed) for seed in seeds}
-    # Episodes equal to one the model trained on are run (so every other episode keeps its
-    # key) but left out of the planner's rows and trajectories (the baselines, trained on
-    # data of their own, are measured on every episode).
-    keep = {seed: ~ge.training_overlap(checkpoint, setting, eps)
-            for seed, eps in all_episodes.items()}
-    per_seed = {seed: ge.select(eps, keep[seed]) for seed, eps in all_episodes.items()}
-    rows, rollouts = [], {}
-    for mode in modes:
-        outs = {seed: ge.evaluate_mode(spec, task, denoiser, eps, seed, mode, args.batch_size,
-                                       progress)
-                for seed, eps in all_episodes.items()}
-        outs = {seed: (ge.select(r, keep[seed]), t) for seed, (r, t) in outs.items()}
-        row, rollouts[mode] = ge.pooled_row(METHOD_NAMES[mode], outs, per_seed, has_reference)
-        rows.append(row)
-    if args.baselines:
-        from experiments.baselines_eval import baseline_rows
+    rows, rollouts, episodes_of = [], {}, {}
+    keep = None
+    for language in languages:
+        lspec = dataclasses.replace(spec, language=language)
+        all_episodes = {seed: ge.eval_episodes(lspec.grid_config(), args.episodes, seed)
+                        for seed in seeds}
+        if keep is None:
+            # Episodes whose world the model trained on are run (so every other episode keeps
+            # its key) but left out of the planner's rows and trajectories (the baselines,
+            # trained on data of their own, are measured on every episode). The phrasing
+            # changes the tokens only: every language has the same worlds, the same keep.
+            keep = {seed: ~ge.training_overlap(checkpoint, setting, eps)
+                    for seed, eps in all_episodes.items()}
+        per_seed = {seed: ge.select(eps, keep[seed]) for seed, eps in all_episodes.items()}
+        episodes_of[language] = per_seed
+        for mode in modes:
+            outs = {seed: ge.evaluate_mode(lspec, task, denoiser, eps, seed, mode,
+                                           args.batch_size, progress)
+                    for seed, eps in all_episodes.items()}
+            outs = {seed: (ge.select(r, keep[seed]), t) for seed, (r, t) in outs.items()}
+            row, rollouts[language, mode] = ge.pooled_row(method_name(mode, language), outs,
+                                                          per_seed, has_reference)
+            row["language"] = language
+            rows.append(row)
+        if args.baselines:
+            from experiments.baselines_eval import baseline_rows
 
-        try:
-            rows += baseline_rows(setting, seeds, args.episodes, args.batch_size, progress,
-                                  methods=args.baselines, episodes_by_seed=all_episodes)
-        except (FileNotFoundError, ValueError) as e:
-            harness.fail(f"cannot evaluate the baselines: {e}")
+            try:
+                extra = baseline_rows(setting, seeds, args.episodes, args.batch_size, progress,
+                                      methods=args.baselines, episodes_by_seed=all_episodes)
+            except (FileNotFoundError, ValueError) as e:
+                harness.fail(f"cannot evaluate the baselines: {e}")
+            for row in extra:
+                row["method"] = method_name(row["method"], language)
+                row["language"] = language
+            rows += extra
 
+    language = languages[0]
+    per_seed = episodes_of[language]
+    rollouts = {mode: r for (lang, mode), r in rollouts.items() if lang == language}
+    spec = dataclasses.replace(spec, language=language)
+    grid_config = spec.grid_config()
     main_mode = spec.main_mode if spec.main_mode in modes else modes[0]
     result = _result(spec, args, seeds, modes, main_mode, checkpoint, train_seconds, rows)
     result["excluded_training_episodes"] = {str(s): int((~k).sum()) for s, k in keep.items()}

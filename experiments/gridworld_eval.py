@@ -47,9 +47,10 @@ model's whole run (144,000 and 288,000 episodes) none of the 1000 episodes of se
 
 
 def training_overlap(checkpoint: str, setting: str, episodes) -> np.ndarray:
-    """bool (N,): the episodes that equal an episode the checkpoint's training run generated
-    (its seed, steps, batch size and mixture from its metadata); all False for settings not
-    in OVERLAP_SETTINGS or a run that did not train on this setting."""
+    """bool (N,): the episodes whose world (grid, agent, objects; any wording) equals that of
+    an episode the checkpoint's training run generated (its seed, steps, batch size, mixture
+    and phrasing from its metadata); all False for settings not in OVERLAP_SETTINGS or a run
+    that did not train on this setting."""
     from diffplan.checkpoint import read_metadata
     from envs.gridworld.episode import fingerprints
     from envs.gridworld.training import training_episodes
@@ -61,8 +62,9 @@ def training_overlap(checkpoint: str, setting: str, episodes) -> np.ndarray:
         return np.zeros(n, bool)
     seen = set(fingerprints(training_episodes(
         setting, seed=int(meta["train_config"]["seed"]), steps=int(meta["step"]),
-        batch_size=int(meta["train_config"]["batch_size"]), mixture=mixture)))
-    return np.array([f in seen for f in fingerprints(episodes)], bool)
+        batch_size=int(meta["train_config"]["batch_size"]), mixture=mixture,
+        language=meta["extra"].get("language", "canonical")), instruction=False))
+    return np.array([f in seen for f in fingerprints(episodes, instruction=False)], bool)
 
 
 def select(tree, keep):

@@ -6,7 +6,8 @@ import argparse
 import os
 
 from experiments import cli, harness
-from experiments.gridworld_spec import MODE_REPLAN, TRAINING_NAME, ExperimentSpec
+from experiments.gridworld_spec import (LANGUAGE_CHOICES, MODE_REPLAN, TRAINING_NAME,
+                                        ExperimentSpec)
 from experiments.recipes import MODEL_SIZES
 
 
@@ -52,6 +53,11 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "('always', the paper) or only when new cells were seen or the plan's "
                         "sub-goal was reached ('on_change'); default: each row's own, "
                         + ", ".join(f"{m} {r}" for m, r in MODE_REPLAN.items()))
+    p.add_argument("--language", choices=tuple(LANGUAGE_CHOICES), default="canonical",
+                   help="instruction phrasing of the episodes: 'canonical' (the paper's, "
+                        "default), 'paraphrased' (the training paraphrases), 'unseen' (held-out "
+                        "phrasings training never saw, made of its words), or 'all' (a row per "
+                        "phrasing and mode; the same worlds in each)")
     p.add_argument("--batch-size", type=int, default=spec.eval_batch,
                    help=f"episodes per jitted evaluation call (default {spec.eval_batch})")
     p.add_argument("--figures", metavar="DIR",

@@ -24,6 +24,18 @@ when the observation changed or the plan's sub-goal was reached."""
 METHOD_NAMES = {"one_shot": "one-shot", "k_shot": "two-shot", "on_the_fly": "on-the-fly",
                 "warm_start": "warm-start on-the-fly"}
 
+LANGUAGE_CHOICES = {"canonical": ("canonical",), "paraphrased": ("paraphrased",),
+                    "unseen": ("unseen",), "all": ("canonical", "paraphrased", "unseen")}
+"""--language of the grid-world CLIs and sweeps: the phrasings (diffplan.language.LANGUAGES)
+a run makes rows for; "unseen" are the held-out phrasings training never saw."""
+
+
+def method_name(mode_or_name: str, language: str = "canonical") -> str:
+    """A row's method: the mode's name (or a baseline's), with the phrasing unless
+    canonical ("on-the-fly, unseen")."""
+    name = METHOD_NAMES.get(mode_or_name, mode_or_name)
+    return name if language == "canonical" else f"{name}, {language}"
+
 
 @dataclasses.dataclass(frozen=True)
 class ExperimentSpec:
@@ -62,20 +74,25 @@ class ExperimentSpec:
     replan: str | None = None
     modes: tuple[str, ...] = ("one_shot", "k_shot", "on_the_fly", "warm_start")
     main_mode: str = "on_the_fly"
+    # How the evaluation episodes' instructions are phrased (diffplan.language.LANGUAGES).
+    language: str = "canonical"
 
     @property
     def name(self) -> str:
         return f"compile_{self.setting}"
 
     def grid_config(self):
+        """The setting's GridConfig, its episodes phrased in self.language."""
         from envs.gridworld.config import make_config
-        return make_config(self.setting)
+        return make_config(self.setting, language=self.language)
 
     def task(self, num_gen_channels: int | None = None):
         """The setting's GridTask for a denoiser with num_gen_channels generated channels
-        (default: the current recipe's)."""
+        (default: the current recipe's). The phrasing only changes the episodes' tokens, so
+        every language shares one task (one compiled rollout)."""
+        from envs.gridworld.config import make_config
         from envs.gridworld.task import NUM_GEN_CHANNELS, GridTask
-        return GridTask(self.grid_config(), use_goal_channel=self.goal_channel,
+        return GridTask(make_config(self.setting), use_goal_channel=self.goal_channel,
                         num_gen_channels=num_gen_channels or NUM_GEN_CHANNELS)
 
     def model_config(self, size: str = "default"):
@@ -167,10 +184,11 @@ def load_checked(checkpoint: str, spec: ExperimentSpec, modes, parser,
     """The checkpoint's LoadedDenoiser, checked against the grid world and the requested step
     counts; one-line errors for a missing, unreadable or mismatched checkpoint (naming
     train_command, default the setting's `--train`, as the way to get one)."""
+    from envs.gridworld import grammar
     from experiments.harness import load_checked as load
 
     denoiser = load(checkpoint, train_command or f"python -m experiments.{spec.name} --train",
-                    spec.mismatch)
+                    spec.mismatch, grammar.VOCAB)
     for mode in modes:
         try:
             spec.planner_config(mode).check_schedule(denoiser.schedule.num_train_steps)

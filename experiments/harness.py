@@ -138,14 +138,18 @@ def per_seed_values(rows_by_seed: dict, fields) -> dict:
 
 def format_table(rows, columns) -> str:
     """A plain-text table of result rows; columns: (key, format, header) triples, the first
-    left-aligned; missing values shown as '-'."""
+    left-aligned (widened to its longest value); missing values shown as '-'."""
     widths = [len(fmt.format(0 if i else "")) for i, (_, fmt, _) in enumerate(columns)]
+    first = columns[0][0]
+    widths[0] = max([widths[0]] + [len(str(row.get(first, ""))) for row in rows])
     head = " ".join(h.rjust(w) if i else h.ljust(w)
                     for i, ((_, _, h), w) in enumerate(zip(columns, widths)))
     lines = [head, "-" * len(head)]
     for row in rows:
-        lines.append(" ".join(fmt.format(row[k]) if row.get(k) is not None else "-".rjust(w)
-                              for (k, fmt, _), w in zip(columns, widths)))
+        cells = [str(row.get(first, "-")).ljust(widths[0])]
+        cells += [fmt.format(row[k]) if row.get(k) is not None else "-".rjust(w)
+                  for (k, fmt, _), w in zip(columns[1:], widths[1:])]
+        lines.append(" ".join(cells))
     return "\n".join(lines)
 
 
@@ -161,6 +165,7 @@ def format_intervals(rows, seeds, width: int) -> str:
             olo, ohi = row["SR_ordered_ci95"]
             per_o = " / ".join(f"{row['per_seed'][str(s)]['SR_ordered']:.1f}" for s in seeds)
             extra = f"; SR_ordered {per_o} [{olo:.2f}, {ohi:.2f}]"
+        width = max(width, max(len(r["method"]) for r in rows))
         lines.append(f"  {row['method']:<{width}} {per} [{lo:.2f}, {hi:.2f}]{extra}")
     return "\n".join(lines)
 
@@ -188,10 +193,32 @@ def load_model(checkpoint_dir: str):
     return load_denoiser(checkpoint_dir), read_metadata(checkpoint_dir)
 
 
-def load_checked(checkpoint: str, train_command: str, mismatch=None):
+def vocabulary_mismatch(metadata: dict, vocab_size: int | None, vocabulary) -> str | None:
+    """Why a checkpoint (its metadata, its network's vocab_size) cannot read instructions
+    tokenised with ``vocabulary`` (the world's word list): its recorded vocabulary differs, or
+    (checkpoints that record none) its vocabulary size does. None if it can."""
+    stored = (metadata.get("extra") or {}).get("vocabulary", metadata.get("vocabulary"))
+    words = list(vocabulary)
+    if stored is not None:
+        if list(stored) == words:
+            return None
+        at = next((i for i, (a, b) in enumerate(zip(stored, words)) if a != b),
+                  min(len(stored), len(words)))
+        return (f"was trained on another vocabulary ({len(stored)} words, this world has "
+                f"{len(words)}; first difference at id {at}): retrain it")
+    if vocab_size is not None and vocab_size != len(words):
+        return (f"reads a vocabulary of {vocab_size} words, this world's has {len(words)}: "
+                "retrain it")
+    return None
+
+
+def load_checked(checkpoint: str, train_command: str, mismatch=None, vocabulary=None):
     """The checkpoint's LoadedDenoiser; one-line errors (exit 2) for a missing one (naming
-    train_command as the way to get one), an unreadable one, or one for which
-    ``mismatch(denoiser)`` returns a message (the world's shape check)."""
+    train_command as the way to get one), an unreadable one, one for which
+    ``mismatch(denoiser)`` returns a message (the world's shape check), or one trained on
+    another vocabulary than ``vocabulary`` (the world's words; token ids would mean other
+    words)."""
+    from diffplan.checkpoint import read_metadata
     from diffplan.denoiser import load_denoiser
 
     try:
@@ -202,6 +229,10 @@ def load_checked(checkpoint: str, train_command: str, mismatch=None):
     except ValueError as e:
         fail(f"cannot read the checkpoint {checkpoint}: {e}")
     problem = mismatch(denoiser) if mismatch is not None else None
+    if not problem and vocabulary is not None:
+        problem = vocabulary_mismatch(read_metadata(checkpoint),
+                                      getattr(denoiser.model_config, "vocab_size", None),
+                                      vocabulary)
     if problem:
         fail(f"the checkpoint {checkpoint} {problem}")
     return denoiser

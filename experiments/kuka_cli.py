@@ -154,7 +154,7 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     else:
         modes = (None,)
 
-    languages = ks.LANGUAGES if args.language == "both" else (args.language,)
+    languages = ks.LANGUAGE_CHOICES[args.language]
     specs = [TaskSpec(kind, multi, language) for language in languages
              for multi in (False, True)]
     episodes = {(spec, seed): ke.generate_episodes(spec, args.episodes, seed, args.batch_size)
@@ -168,7 +168,7 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     main_mode, main_language = modes[0], languages[0]
     main_specs = [s for s in specs if s.language == main_language]
     main_name = args.policy if not planner_policy else f"planner {ks.METHOD_NAMES[main_mode]}"
-    main_row = ke.pooled_row(main_name + (", paraphrased" if main_language == "paraphrased"
+    main_row = ke.pooled_row(main_name + (f", {main_language}" if main_language != "canonical"
                                           else ""),
                              [rows[main_mode, s] for s in main_specs],
                              sum(rows[main_mode, s]["seconds"] for s in main_specs))

@@ -6,7 +6,7 @@ import argparse
 
 from experiments import cli, harness
 from experiments.kuka_spec import (CARRIES, CHECKPOINT_EVERY, DEFAULT_BATCH, DEFAULT_EPISODES,
-                                   LANGUAGES, MODES, NUM_STEPS, POLICIES, TRAIN_STEPS,
+                                   LANGUAGE_CHOICES, MODES, NUM_STEPS, POLICIES, TRAIN_STEPS,
                                    TRAINING_NAME)
 from experiments.recipes import MODEL_SIZES
 
@@ -26,9 +26,12 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
     p.add_argument("--policy", choices=POLICIES, default="planner",
                    help="who acts: 'planner' (the diffusion planner, default) or 'expert' (the "
                         "scripted expert through the same primitive and physics)")
-    p.add_argument("--language", choices=LANGUAGES + ("both",), default="canonical",
+    p.add_argument("--language", choices=tuple(LANGUAGE_CHOICES), default="canonical",
                    help="instruction phrasing: 'canonical' (Table 2, default), 'paraphrased' "
-                        "with inverted prepositions (Table 5), or 'both' (every row for each)")
+                        "with inverted prepositions (Table 5, the training paraphrases), "
+                        "'unseen' (held-out phrasings training never saw, made of its words), "
+                        "'both' (canonical and paraphrased: every row for each) or 'all' "
+                        "(all three)")
     p.add_argument("--modes", default=",".join(MODES),
                    help=f"comma-separated planning modes (default {','.join(MODES)}); the "
                         "first of them gives the main row")

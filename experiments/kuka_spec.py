@@ -16,7 +16,13 @@ MODES = ("on_the_fly", "one_shot")
 on-the-fly planning, the main rows), or one plan at t = 0 followed to the end."""
 MAIN_MODE = "on_the_fly"
 METHOD_NAMES = {"on_the_fly": "on-the-fly", "one_shot": "one-shot"}
-LANGUAGES = ("canonical", "paraphrased")
+LANGUAGES = ("canonical", "paraphrased", "unseen")
+"""Instruction phrasings (envs.kuka.grammar.LANGUAGES): Table 2's, the training paraphrases
+(Table 5's "complex" instructions), the held-out phrasings training never saw."""
+LANGUAGE_CHOICES = {**{language: (language,) for language in LANGUAGES},
+                    "both": ("canonical", "paraphrased"), "all": LANGUAGES}
+"""--language of the Kuka CLIs: one phrasing, canonical and paraphrased ("both", the README's
+Table 5 command), or all three."""
 CARRIES = ("path", "arc")
 """How a block is carried: along the in-painted path, or the expert's arc around the base."""
 NUM_STEPS = 10
@@ -102,14 +108,15 @@ def mismatch(denoiser, num_steps: int) -> str | None:
 def load_checked(checkpoint: str, num_steps: int, kind: str):
     """The checkpoint's LoadedDenoiser, checked against the Kuka planning tensor and the
     step count; one-line errors for a missing, unreadable or mismatched checkpoint."""
+    from envs.kuka import grammar
     from experiments.harness import load_checked as load
 
     return load(checkpoint, f"python -m experiments.kuka_{kind} --train",
-                lambda denoiser: mismatch(denoiser, num_steps))
+                lambda denoiser: mismatch(denoiser, num_steps), grammar.VOCAB)
 
 
 def label(mode: str | None, multi: bool, language: str, policy: str) -> str:
     """A row's method: who acts (and how it plans), which column, which phrasing."""
     who = "expert" if policy == "expert" else f"planner {METHOD_NAMES[mode]}"
     what = "multi-constraint" if multi else "single constraint"
-    return f"{who}, {what}" + (", paraphrased" if language == "paraphrased" else "")
+    return f"{who}, {what}" + (f", {language}" if language != "canonical" else "")

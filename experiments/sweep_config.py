@@ -7,8 +7,10 @@ instead ("setting": "p_mo2g", as the shipped sweep files do); without either the
 gridworld/p_mo2g. The keys every task takes: task, checkpoint, modes (one planning mode),
 num_steps, seed, episodes, batch_size. The grid world's: setting, eta, warm_start_step,
 warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change"; missing: the
-mode's own, as in the experiment CLIs). The Kuka world's: multi (several instructed relations:
-the multi-constraint column), language ("canonical" | "paraphrased"), carry ("path" | "arc").
+mode's own, as in the experiment CLIs), language. The Kuka world's: multi (several instructed
+relations: the multi-constraint column), language, carry ("path" | "arc"). language is the
+instructions' phrasing in both worlds: "canonical" | "paraphrased" | "unseen" (held-out
+phrasings training never saw).
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ GRID_DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly",
                  "warm_start_step": _SPEC.warm_start_step,
                  "warm_num_steps": _SPEC.warm_num_steps or _SPEC.num_steps,
                  "noise": "fresh" if _SPEC.fresh_noise else "episode", "replan": None,
-                 "seed": DEFAULT_EVAL_SEED, "episodes": 1000, "batch_size": _SPEC.eval_batch}
+                 "language": "canonical", "seed": DEFAULT_EVAL_SEED, "episodes": 1000, "batch_size": _SPEC.eval_batch}
 """The grid-world CLIs' defaults (replan None: the mode's own trigger, MODE_REPLAN)."""
 KUKA_DEFAULTS = {"checkpoint": None, "modes": ks.MAIN_MODE, "num_steps": ks.NUM_STEPS,
                  "multi": False, "language": "canonical", "carry": "path",
@@ -137,7 +139,8 @@ def spec_of(config: dict) -> gs.ExperimentSpec:
     return dataclasses.replace(
         gs.SPECS[config["setting"]], num_steps=config["num_steps"],
         warm_start_step=config["warm_start_step"], warm_num_steps=config["warm_num_steps"],
-        fresh_noise=config["noise"] == "fresh", eta=config["eta"], replan=config["replan"])
+        fresh_noise=config["noise"] == "fresh", eta=config["eta"], replan=config["replan"],
+        language=config["language"])
 
 
 def planner_config(config: dict):

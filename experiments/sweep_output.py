@@ -40,12 +40,14 @@ def label(row) -> str:
     if row["task"].startswith("kuka/"):
         return (f"{row['task'].split('/')[1]} {row['modes']} {row['num_steps']}"
                 + (" multi" if row["multi"] else "")
-                + (" paraphrased" if row["language"] == "paraphrased" else "")
+                + (f" {row['language']}" if row["language"] != "canonical" else "")
                 + (" arc" if row["carry"] == "arc" else ""))
     extra = (f" {row['warm_num_steps']}/{row['warm_start_step']}" if row["modes"] ==
              "warm_start" else f" {row['num_steps']}")
     return (f"{row['modes']}{extra}" + (" on_change" if row["replan"] == "on_change" else "")
-            + (f" eta{row['eta']:g}" if row["eta"] else ""))
+            + (f" eta{row['eta']:g}" if row["eta"] else "")
+            + (f" {row['language']}" if row.get("language", "canonical") != "canonical"
+               else ""))
 
 
 SECOND_PANELS = (("path_f1", "path F1 (%)"), ("SR_diffuser", "SR, Diffuser's check (%)"))

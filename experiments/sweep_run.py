@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import gridworld_eval as ge, harness, kuka_eval as ke, kuka_spec as ks
+from experiments import (gridworld_eval as ge, gridworld_spec as gs, harness, kuka_eval as ke,
+                         kuka_spec as ks)
 from experiments.sweep_config import (SweepError, default_checkpoint, planner_config, spec_of,
                                       world)
 from experiments.sweep_output import label
@@ -116,7 +117,7 @@ class Runner:
         den = self.denoiser(config, index)
         task = spec.task(den.num_gen_channels)
         n, seed = config["episodes"], config["seed"]
-        episodes = self._episodes_of((config["task"], n, seed),
+        episodes = self._episodes_of((config["task"], config["language"], n, seed),
                                      lambda: ge.eval_episodes(spec.grid_config(), n, seed))
         padded = -(-n // self.devices) * self.devices
         idx = np.arange(padded) % n
@@ -147,8 +148,8 @@ class Runner:
         out, episodes = ge.select(out, keep), ge.select(episodes, keep)
         if trajectories:
             ge.write_trajectories(trajectories, out, episodes, spec.grid_config())
-        row = ge.metrics_row(ge.METHOD_NAMES[config["modes"]], out, episodes, seconds,
-                             spec.grid_config().has_reference)
+        row = ge.metrics_row(gs.method_name(config["modes"], config["language"]), out,
+                             episodes, seconds, spec.grid_config().has_reference)
         row["excluded_training_episodes"] = int((~keep).sum())
         return row, compile_seconds, seconds
 

@@ -53,13 +53,13 @@ def test_round_trip_every_template_object_direction(setting):
 @pytest.mark.parametrize("setting", SETTINGS)
 def test_paraphrases_exist(setting):
     templates = grammar.TEMPLATES[setting]
-    assert len(templates) >= 3
+    assert len(templates) >= 12
     assert len(set(templates)) == len(templates)
-    # Every template has the setting's slots exactly once.
+    # Every template has the setting's slots (an object may be named twice; one direction).
     for template in templates:
-        assert template.count("{target}") == 1
+        assert template.count("{target}") >= 1
         if setting == "p_mo2g":
-            assert template.count("{ref}") == 1 and template.count("{dir}") == 1
+            assert template.count("{ref}") >= 1 and template.count("{dir}") == 1
         else:
             assert "{ref}" not in template and "{dir}" not in template
     # Paraphrases of one meaning render to different texts.
@@ -92,8 +92,9 @@ def test_compiled_templates(setting):
     assert compiled.dtype == np.int32
     assert compiled.shape == (len(grammar.TEMPLATES[setting]), grammar.MAX_TOKENS)
     for row, template in zip(compiled, grammar.TEMPLATES[setting]):
-        assert (row == grammar.SLOT_TARGET).sum() == 1
-        assert ((row == grammar.SLOT_REF).sum() == 1) == (setting == "p_mo2g")
+        assert (row == grammar.SLOT_TARGET).sum() == template.count("{target}") >= 1
+        assert (row == grammar.SLOT_REF).sum() == template.count("{ref}")
+        assert ((row == grammar.SLOT_REF).sum() >= 1) == (setting == "p_mo2g")
         n = len(grammar.split_words(template))
         assert (row[n:] == 0).all() and (row[:n] != 0).all()
     with pytest.raises(ValueError, match="unknown setting"):

@@ -44,10 +44,11 @@ def test_goal_vector_reads_the_instruction(setting, grid_configs, gen_batch):
     _check_goal_vector(grid_configs[setting], gen_batch(setting, 31)[0])
 
 
-def test_goal_vector_reads_every_p_mo2g_phrasing():
-    config = make_config("p_mo2g", paraphrase=True)
+@pytest.mark.parametrize("language", ["paraphrased", "unseen"])
+def test_goal_vector_reads_every_p_mo2g_phrasing(language):
+    config = make_config("p_mo2g", language=language)
     episodes = eval_episodes(config, 48, seed=31)
-    assert len(set(np.asarray(episodes.template).tolist())) == config.num_templates
+    assert set(np.asarray(episodes.template).tolist()) == set(config.template_pool.tolist())
     _check_goal_vector(config, episodes)
 
 

@@ -11,9 +11,10 @@ them as a one-hot goal vector (the paper's appendix), :func:`goal_vector`:
 
 The paper gives BC and CQL "the goal" as a one-hot vector; in P-MO2G the target is not visible
 at first, so the reference and the direction, which the instruction names, are one-hot encoded
-beside it (our planner reads the same words). The vector is read off the tokens: the target is
-the last object word, the reference the first one when there are two (every template of
-``envs.gridworld.grammar`` names the reference first), the direction any direction word.
+beside it (our planner reads the same words). The vector is read off the tokens: the words in
+the slots of whichever of the grammar's phrasings the instruction is (held-out ones included:
+the baselines get the goal, not the sentence, as in the paper); for a sentence that is none of
+them, the target is the last object word and the reference the first of two.
 
 Training data of every baseline comes from the training key stream
 (``envs.gridworld.training.training_episode_keys``), never from the evaluation seeds, in the
@@ -50,24 +51,44 @@ MAX_CELL_ID = grammar.OBJECT_TOKEN_OFFSET + NUM_CLASSES - 1
 PLAN_THRESHOLD = 0.5
 
 
-def goal_vector(tokens):
-    """float32 (..., GOAL_DIM): the one-hot goal vector of instruction tokens int (..., L)
-    (see the module docstring). Padding tokens (all 0) give the zero vector."""
-    tokens = jnp.asarray(tokens, jnp.int32)
+def _heuristic_slots(tokens):
+    """(ref, target, dir) token ids int32 () of one instruction none of the grammar's phrasings
+    matches: the target is the last object word, the reference the first when there are two,
+    the direction the first direction word (0 where absent)."""
     length = tokens.shape[-1]
     cls = tokens - grammar.OBJECT_TOKEN_OFFSET
     is_object = (cls >= 0) & (cls < NUM_CLASSES)
     pos = jnp.arange(length)
-    last = jnp.argmax(jnp.where(is_object, pos, -1), axis=-1)
-    first = jnp.argmax(jnp.where(is_object, length - pos, -1), axis=-1)
-    count = jnp.sum(is_object, axis=-1)
-    target = jnp.take_along_axis(cls, last[..., None], axis=-1)[..., 0]
-    reference = jnp.take_along_axis(cls, first[..., None], axis=-1)[..., 0]
-    target_hot = jax.nn.one_hot(target, NUM_CLASSES) * (count >= 1)[..., None]
-    reference_hot = jax.nn.one_hot(reference, NUM_CLASSES) * (count >= 2)[..., None]
-    direction_hot = jnp.any(tokens[..., :, None] == jnp.asarray(grammar.DIRECTION_TOKEN_IDS),
-                            axis=-2).astype(jnp.float32)
-    return jnp.concatenate([target_hot, reference_hot, direction_hot], axis=-1)
+    last = jnp.argmax(jnp.where(is_object, pos, -1))
+    first = jnp.argmax(jnp.where(is_object, length - pos, -1))
+    count = jnp.sum(is_object)
+    is_dir = jnp.any(tokens[:, None] == jnp.asarray(grammar.DIRECTION_TOKEN_IDS), axis=-1)
+    return (jnp.where(count >= 2, tokens[first], 0), jnp.where(count >= 1, tokens[last], 0),
+            jnp.where(jnp.any(is_dir), tokens[jnp.argmax(is_dir)], 0))
+
+
+def _goal_vector_one(tokens):
+    matched, *slots = grammar.parse(tokens)
+    ref, target, direction = (jnp.where(matched, a, b)
+                              for a, b in zip(slots, _heuristic_slots(tokens)))
+
+    def hot(token, ids):
+        return jnp.where(token > 0, (jnp.asarray(ids) == token).astype(jnp.float32), 0.0)
+
+    classes = jnp.arange(NUM_CLASSES) + grammar.OBJECT_TOKEN_OFFSET
+    return jnp.concatenate([hot(target, classes), hot(ref, classes),
+                            hot(direction, grammar.DIRECTION_TOKEN_IDS)])
+
+
+def goal_vector(tokens):
+    """float32 (..., GOAL_DIM): the one-hot goal vector of instruction tokens int (..., L)
+    (see the module docstring): the objects and the direction in the slots of whichever of
+    the grammar's phrasings the instruction is (``grammar.parse``; any word order); for any
+    other sentence, the last object word as the target, the first of two as the reference.
+    Padding tokens (all 0) give the zero vector."""
+    tokens = jnp.asarray(tokens, jnp.int32)
+    flat = tokens.reshape((-1, tokens.shape[-1]))
+    return jax.vmap(_goal_vector_one)(flat).reshape(tokens.shape[:-1] + (GOAL_DIM,))
 
 
 def input_shapes(size: int = 16) -> dict:

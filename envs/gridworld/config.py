@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from diffplan import language
 from envs.gridworld import grammar
 
 SETTINGS = ("1o1g", "mo1g", "p_mo2g")
@@ -24,8 +25,11 @@ class GridConfig:
       ref_target_radius: in p_mo2g the target lies within this Chebyshev distance of the
         reference, so that standing on the reference reveals it (must be <= view_radius).
       max_steps: episode length in moves.
-      paraphrase: draw the instruction uniformly from the setting's templates; False uses the
-        canonical template 0.
+      language: how instructions are phrased (grammar.LANGUAGES): "canonical" (template 0),
+        "paraphrased" (a training paraphrase), "unseen" (a held-out phrasing training never
+        sees), or "mixed" (training examples: canonical half of the time, else a training
+        paraphrase); grammar.SPLITS.
+      paraphrase: the older spelling of language="paraphrased" (True sets it).
       num_classes: number of object classes used (<= len(grammar.OBJECT_NAMES)).
     """
 
@@ -37,11 +41,20 @@ class GridConfig:
     view_radius: int | None = 6
     ref_target_radius: int = 6
     max_steps: int = 100
+    language: str = "canonical"
     paraphrase: bool = False
     num_classes: int = len(grammar.OBJECT_NAMES)
 
     def __post_init__(self):
         errors = []
+        if self.paraphrase:
+            if self.language not in ("canonical", "paraphrased"):
+                errors.append(f"paraphrase=True contradicts language={self.language!r}")
+            object.__setattr__(self, "language", "paraphrased")
+            object.__setattr__(self, "paraphrase", False)
+        if self.language not in grammar.LANGUAGES + (language.TRAINING,):
+            errors.append(f"unknown language {self.language!r}; expected one of "
+                          f"{grammar.LANGUAGES + (language.TRAINING,)}")
         if self.setting not in SETTINGS:
             errors.append(f"unknown setting {self.setting!r}; expected one of {SETTINGS}")
         if self.size < 4:
@@ -100,6 +113,11 @@ class GridConfig:
     @property
     def num_templates(self) -> int:
         return len(grammar.TEMPLATES[self.setting])
+
+    @property
+    def template_pool(self):
+        """int32 (P,) the template indices this config's episodes draw their phrasing from."""
+        return grammar.template_pool(self.setting, self.language)
 
 
 def make_config(setting: str, **overrides) -> GridConfig:

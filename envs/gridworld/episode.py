@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from diffplan import language
 from envs.gridworld import bfs, grammar
 from envs.gridworld.config import GridConfig
 
@@ -253,8 +254,7 @@ def generate(key, config: GridConfig) -> Episode:
     else:
         direction = jnp.int32(-1)
     templates = jnp.asarray(grammar.compile_templates(config.setting))
-    template = (jax.random.randint(k_template, (), 0, config.num_templates)
-                if config.paraphrase else jnp.int32(0))
+    template = language.draw_template(k_template, config.template_pool)
     tokens = grammar.fill_template(templates[template], reference_class, target_class,
                                    jnp.maximum(direction, 0))
     valid = jnp.arange(config.max_steps + 1) <= length
@@ -273,14 +273,15 @@ def generate_batch(key, config: GridConfig, n: int) -> Episode:
     return jax.vmap(generate, in_axes=(0, None))(keys, config)
 
 
-def fingerprints(episodes: Episode) -> list[bytes]:
+def fingerprints(episodes: Episode, instruction: bool = True) -> list[bytes]:
     """One 16-byte digest per episode (numpy or jax arrays with a leading axis): equal
     digests mean equal episodes (grid, agent, target, reference, instruction), the content a
-    planner is evaluated on (the expert path follows from it)."""
+    planner is evaluated on (the expert path follows from it). instruction=False leaves the
+    instruction's tokens out: equal digests then mean the same world, whatever its wording."""
     import hashlib
 
-    fields = (episodes.grid, episodes.agent, episodes.target, episodes.reference,
-              episodes.tokens)
+    fields = (episodes.grid, episodes.agent, episodes.target, episodes.reference) + \
+        ((episodes.tokens,) if instruction else ())
     n = int(np.shape(episodes.agent)[0])
     rows = np.concatenate([np.asarray(f).reshape(n, -1).astype(np.int16) for f in fields],
                           axis=1)

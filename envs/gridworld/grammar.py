@@ -34,37 +34,66 @@ PAD, UNSEEN, EMPTY, OBSTACLE = "<pad>", "<unseen>", "<empty>", "<obstacle>"
 SPECIAL_TOKENS: tuple[str, ...] = (PAD, UNSEEN, EMPTY, OBSTACLE)
 PAD_ID, UNSEEN_ID, EMPTY_ID, OBSTACLE_ID = 0, 1, 2, 3
 
+_GOAL_ONLY = (
+    # training: canonical (0) and paraphrases (1-7)
+    "Go to the {target}.",
+    "Walk to the {target}.",
+    "Find the {target}.",
+    "Navigate to the {target}.",
+    "Head towards the {target}.",
+    "Your goal is the {target}.",
+    "The {target} is where you should go.",
+    "Please move to the {target}.",
+    # held out (8-11)
+    "Move towards the {target}.",
+    "The {target} is your goal.",
+    "Please find the {target}.",
+    "Go where the {target} is.",
+)
+
 TEMPLATES: dict[str, tuple[str, ...]] = {
-    "1o1g": (
-        "Go to the {target}.",
-        "Walk to the {target}.",
-        "Find the {target}.",
-        "Navigate to the {target}.",
-        "Head towards the {target}.",
-        "Your goal is the {target}.",
-    ),
-    "mo1g": (
-        "Go to the {target}.",
-        "Walk to the {target}.",
-        "Find the {target}.",
-        "Navigate to the {target}.",
-        "Head towards the {target}.",
-        "Your goal is the {target}.",
-    ),
+    "1o1g": _GOAL_ONLY,
+    "mo1g": _GOAL_ONLY,
     "p_mo2g": (
+        # training: canonical (0) and paraphrases (1-7); 6 and 7 name the target first
         "First, go to the {ref}. Then, go {dir} to find the {target}.",
         "First, walk to the {ref}, then head {dir} towards the {target}.",
         "Go to the {ref} first. The {target} is {dir} of it.",
         "Find the {ref}. From there, the {target} lies to the {dir}.",
         "Head towards the {ref}, then go {dir} and find the {target}.",
         "Navigate to the {ref}. Then, search {dir} for the {target}.",
+        "The {target} lies {dir} of the {ref}. Go to the {ref} first.",
+        "The {target} is to the {dir} of the {ref}. Walk to the {ref}, then find the {target}.",
+        # held out (8-11); 9 and 11 name the target first
+        "Walk to the {ref}. The {target} is {dir} of the {ref}.",
+        "The {target} lies to the {dir} of the {ref}. First, go to the {ref}.",
+        "Navigate to the {ref} first, then search {dir} for the {target}.",
+        "Find the {target}. It lies {dir} of the {ref}. Go to the {ref} first.",
     ),
 }
-"""Template 0 of each setting is the canonical phrasing; the others are paraphrases."""
+"""Twelve phrasings of each setting's meaning: template 0 is the canonical phrasing, 1-7 the
+training paraphrases, 8-11 the held-out ("unseen") third that training never sees
+(:data:`SPLITS`; every word of them occurs in a training phrasing of the same setting)."""
+
+UNSEEN_TEMPLATES = (8, 9, 10, 11)
 
 SLOT_REF, SLOT_TARGET, SLOT_DIR = -1, -2, -3
 _SLOT_NAMES = ("{ref}", "{target}", "{dir}")
 """Slot k of a template is the marker -(k + 1) (diffplan.language's convention)."""
+
+LANGUAGES = language.LANGUAGES
+SPLITS: dict[str, language.TemplateSplit] = {
+    setting: language.TemplateSplit(templates, UNSEEN_TEMPLATES, _SLOT_NAMES)
+    for setting, templates in TEMPLATES.items()}
+"""Each setting's phrasings split into canonical, training paraphrases and held-out ones."""
+
+
+def template_pool(setting: str, language_name: str) -> np.ndarray:
+    """int32 (P,) the template indices an episode of the setting draws its phrasing from
+    (diffplan.language.TemplateSplit.pool)."""
+    if setting not in SPLITS:
+        raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(SPLITS)}")
+    return SPLITS[setting].pool(language_name)
 
 
 def split_words(text: str) -> list[str]:
@@ -139,3 +168,32 @@ def render(setting: str, template: int, ref_class: int, target_class: int, direc
         "target": OBJECT_NAMES[target_class - 1],
         "dir": DIRECTIONS[direction] if direction >= 0 else "",
     })
+
+
+def _all_templates():
+    """Every setting's compiled templates stacked (int32 (sum N, MAX_TOKENS)) and the setting
+    name and template index of each row."""
+    rows, names = [], []
+    for setting in TEMPLATES:
+        rows.append(compile_templates(setting))
+        names += [(setting, i) for i in range(len(TEMPLATES[setting]))]
+    return np.concatenate(rows), tuple(names)
+
+
+_COMPILED, _TEMPLATE_NAMES = _all_templates()
+
+
+def parse(tokens):
+    """(matched, ref_token, target_token, dir_token) of instruction tokens int (MAX_TOKENS,):
+    the words in the slots of whichever phrasing (any setting, held-out ones included) the
+    instruction is; matched False (and 0 tokens) if it is none of them. jit-able."""
+    index, slots = language.match_template(tokens, _COMPILED)
+    return index >= 0, slots[0], slots[1], slots[2]
+
+
+def which_template(tokens) -> tuple[str, int] | None:
+    """(setting, template index) of an instruction's tokens (numpy), or None: plain Python,
+    for tests and export."""
+    index, _ = language.match_template(np.asarray(tokens), _COMPILED)
+    index = int(index)
+    return None if index < 0 else _TEMPLATE_NAMES[index]

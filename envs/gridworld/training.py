@@ -17,7 +17,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from envs.gridworld import bfs, env
+from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
 from envs.gridworld.task import NUM_GEN_CHANNELS, condition_from_observation
@@ -161,16 +161,20 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
 
 
 def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
-                          **example_kwargs):
+                          language: str = "canonical", **example_kwargs):
     """batch_fn(key, batch_size) -> Batch with the settings' examples in fixed proportions:
     mixture ((setting, count), ...) gives count examples of each setting per sum(counts) (the
     batch size must be a multiple of sum(counts)); example j of setting s comes from
-    training_episode_keys(fold_in(key, index of s), ...). example_kwargs go to
+    training_episode_keys(fold_in(key, index of s), ...). language: the phrasing of the
+    instructions (GridConfig.language; never "unseen"). example_kwargs go to
     :func:`make_batch_fn`."""
     from diffplan.train import Batch
 
+    if language == "unseen":
+        raise ValueError("training never draws the held-out ('unseen') phrasings")
     total = sum(count for _, count in mixture)
-    fns = [(make_batch_fn(make_config(setting), goal_channel, **example_kwargs), count)
+    fns = [(make_batch_fn(make_config(setting, language=language), goal_channel,
+                          **example_kwargs), count)
            for setting, count in mixture]
 
     def batch_fn(key, batch_size):
@@ -190,16 +194,19 @@ class Recipe:
     """The grid world's training-data recipe (what ``experiments.compile_*`` --train uses).
 
     mixture: (setting, examples per batch of sum(counts)). detour_prob / goal_loss_weight: see
-    :func:`make_batch_fn`. goal_channel: False for the "- g" ablation.
+    :func:`make_batch_fn`. goal_channel: False for the "- g" ablation. language: the phrasing
+    of the examples' instructions ("mixed": canonical half of the time, else one of the
+    training paraphrases; the held-out phrasings never).
     """
 
     mixture: tuple = TRAINING_MIXTURE
     detour_prob: float = 0.5
     goal_loss_weight: float = 3.0
     goal_channel: bool = True
+    language: str = "mixed"
 
     def batch_fn(self):
-        return make_mixture_batch_fn(self.mixture, self.goal_channel,
+        return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
                                      detour_prob=self.detour_prob,
                                      goal_loss_weight=self.goal_loss_weight)
 
@@ -212,7 +219,8 @@ class Recipe:
         """What a checkpoint records of the recipe (compared when resuming)."""
         return {"mixture": [list(m) for m in self.mixture], "goal_channel": self.goal_channel,
                 "detour_prob": self.detour_prob, "goal_loss_weight": self.goal_loss_weight,
-                "num_gen_channels": NUM_GEN_CHANNELS}
+                "language": self.language, "num_gen_channels": NUM_GEN_CHANNELS,
+                "vocabulary": list(grammar.VOCAB)}
 
 
 # ------------------------------------------------------------------ the episodes of a run
@@ -233,14 +241,15 @@ def _episodes_of_steps(step_ids, seed, config: GridConfig, index: int, count: in
 
 
 def training_episodes(setting: str, *, seed: int, steps: int, batch_size: int,
-                      mixture=TRAINING_MIXTURE, chunk: int = 500) -> Episode:
+                      mixture=TRAINING_MIXTURE, language: str = Recipe.language,
+                      chunk: int = 500) -> Episode:
     """Every episode of ``setting`` that a training run with this mixture saw (as numpy, a
     leading axis of steps x examples per batch), recomputed from the keys the training loop
     gives its steps (``diffplan.train_state.step_key``; the denoiser's step splits it into
     (batch key, loss key), ``make_mixture_batch_fn`` folds the setting's index into the batch
     key, and each example generates its episode from the first of its keys).
     tests/test_training_disjoint.py checks this against the episodes that ``diffplan.train``
-    really generates."""
+    really generates. language: the recipe's (Recipe.language)."""
     import numpy as np
 
     names = [name for name, _ in mixture]
@@ -251,7 +260,7 @@ def training_episodes(setting: str, *, seed: int, steps: int, batch_size: int,
     if batch_size % total:
         raise ValueError(f"batch size {batch_size} is not a multiple of the mixture's {total}")
     count = dict(mixture)[setting] * (batch_size // total)
-    config = make_config(setting)
+    config = make_config(setting, language=language)
 
     parts = []
     for lo in range(0, steps, chunk):

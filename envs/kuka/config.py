@@ -26,7 +26,8 @@ NO_BLOCK = -1
 class TaskSpec:
     """A task (hashable; pass as a static argument). kind: "stacking" or "rearrangement";
     multi: several instructed relations (3 stacking, 2 rearrangement) or one; language:
-    "canonical" or "paraphrased" (grammar.LANGUAGES)."""
+    "canonical", "paraphrased" or "unseen" (grammar.LANGUAGES: the held-out phrasings that
+    training never sees)."""
 
     kind: str
     multi: bool = False

@@ -141,7 +141,7 @@ def generate(key, spec: TaskSpec) -> Episode:
     constraints, goal = sample_relations(jax.random.fold_in(k_rel, column), spec)
     tower = spec.kind == "stacking"
     tokens = grammar.instruction_tokens(k_lang, constraints, tower and not spec.multi,
-                                        spec.language == "paraphrased")
+                                        spec.language)
     return Episode(block_xy=sample_layout(k_layout), constraints=constraints, goal=goal,
                    tower=jnp.asarray(tower), max_steps=jnp.asarray(spec.max_steps, jnp.int32),
                    tokens=tokens)

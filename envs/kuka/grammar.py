@@ -29,25 +29,42 @@ RELATION_TEMPLATES: tuple[str, ...] = (
     "Put the {top} block above the {bottom} block.",
     "Move the {top} block so that it rests on the {bottom} block.",
     "The {bottom} block should be beneath the {top} block.",
+    # held out of training (8-11), made of the training phrasings' words; 9 and 11 inverted
+    "Put the {top} block on top of the {bottom} block.",
+    "The {bottom} block should be below the {top} block.",
+    "Move the {top} block onto the {bottom} block.",
+    "Set the {bottom} block under the {top} block.",
 )
-"""One relation "top on bottom"; 0 is canonical. Templates 2, 4 and 7 invert the preposition."""
-INVERTED = (2, 4, 7)
+"""One relation "top on bottom"; 0 is canonical, 1-7 the training paraphrases, 8-11 held out.
+Templates 2, 4, 7, 9 and 11 invert the preposition (name the lower block first)."""
+INVERTED = (2, 4, 7, 9, 11)
 
 TOWER_TEMPLATES: tuple[str, ...] = (
     "Build a tower of all four blocks.",
     "Stack all four blocks into one tower.",
     "Make a single tower with the four blocks.",
     "Pile the four blocks up into one tower.",
+    # held out of training (4-5)
+    "Build one tower with all four blocks.",
+    "Make a tower of the four blocks.",
 )
-"""The tower sentence of single-constraint stacking; 0 is canonical."""
+"""The tower sentence of single-constraint stacking; 0 is canonical, 1-3 the training
+paraphrases, 4-5 held out."""
 
-LANGUAGES = ("canonical", "paraphrased")
+LANGUAGES = language.LANGUAGES
 """canonical: every sentence in its template 0; paraphrased: every sentence in a uniformly drawn
-paraphrase (never template 0)."""
+training paraphrase (never template 0); unseen: every sentence in a uniformly drawn held-out
+phrasing (:data:`RELATION_SPLIT`, :data:`TOWER_SPLIT`)."""
+RELATION_SPLIT = language.TemplateSplit(RELATION_TEMPLATES, (8, 9, 10, 11), SLOTS)
+TOWER_SPLIT = language.TemplateSplit(TOWER_TEMPLATES, (4, 5), SLOTS)
+"""A third of each sentence kind's phrasings is held out of training (every word of them occurs
+in a training phrasing, so the vocabulary is that of the training phrasings)."""
 
 
 def _build_vocab() -> tuple[str, ...]:
-    words = language.template_words(RELATION_TEMPLATES + TOWER_TEMPLATES, SLOTS)
+    words = language.template_words(
+        [RELATION_TEMPLATES[i] for i in RELATION_SPLIT.training]
+        + [TOWER_TEMPLATES[i] for i in TOWER_SPLIT.training], SLOTS)
     # Block colours right after the padding: block i has token id i + 1.
     return (PAD,) + BLOCK_NAMES + tuple(sorted(words - set(BLOCK_NAMES)))
 
@@ -77,23 +94,19 @@ def decode(ids) -> str:
     return VOCABULARY.decode(ids)
 
 
-def _choose(key, num: int, paraphrased: bool, shape=()):
-    if not paraphrased:
-        return jnp.zeros(shape, jnp.int32)
-    return jax.random.randint(key, shape, 1, num)
-
-
-def instruction_tokens(key, constraints, tower_sentence, paraphrased: bool):
+def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canonical"):
     """int32 (MAX_TOKENS,) an instruction's token ids; jit/vmap-able.
 
     constraints: int32 (MAX_RELATIONS, 2) (top, bottom) block indices, -1 rows are absent;
-    tower_sentence: bool () starts with the tower sentence; paraphrased (static): every sentence
-    in a uniformly drawn paraphrase instead of its canonical phrasing.
+    tower_sentence: bool () starts with the tower sentence; phrasing (static, LANGUAGES): each
+    sentence in its canonical phrasing, or in one drawn uniformly from the training paraphrases
+    or from the held-out phrasings.
     """
+    language.check_language(phrasing, training=False)
     k_tower, k_rel = jax.random.split(key)
     constraints = jnp.asarray(constraints)
-    tower = jnp.asarray(TOWERS)[_choose(k_tower, len(TOWER_TEMPLATES), paraphrased)]
-    which = _choose(k_rel, len(RELATION_TEMPLATES), paraphrased, (MAX_RELATIONS,))
+    tower = jnp.asarray(TOWERS)[language.draw_template(k_tower, TOWER_SPLIT.pool(phrasing))]
+    which = language.draw_template(k_rel, RELATION_SPLIT.pool(phrasing), (MAX_RELATIONS,))
     slots = block_token(jnp.maximum(constraints, 0))
     relations = jax.vmap(language.fill_slots)(jnp.asarray(RELATIONS)[which], slots)
     segments = jnp.concatenate([tower[None], relations])
@@ -113,3 +126,32 @@ def render(constraints, tower_sentence: bool, relation_templates=None, tower_tem
         sentences.append(language.render(RELATION_TEMPLATES[k], {
             "top": BLOCK_NAMES[top], "bottom": BLOCK_NAMES[bottom]}))
     return " ".join(sentences)
+
+
+def sentence_templates(ids) -> list[tuple[str, int] | None]:
+    """Which phrasing each sentence of an instruction (int token ids, numpy) is: ("tower", k)
+    or ("relation", k), None for a sentence that is neither. Plain Python, for tests and
+    checks of the training data."""
+    ids = [int(i) for i in np.asarray(ids).ravel() if int(i) != language.PAD_ID]
+    stop = VOCABULARY.word_to_id["."]
+    sentences, current = [], []
+    for token in ids:
+        current.append(token)
+        if token == stop:
+            sentences.append(current)
+            current = []
+    if current:
+        sentences.append(current)
+    out = []
+    for sentence in sentences:
+        row = np.zeros(SENTENCE_TOKENS, np.int32)
+        row[:min(len(sentence), SENTENCE_TOKENS)] = sentence[:SENTENCE_TOKENS]
+        found = None
+        if len(sentence) <= SENTENCE_TOKENS:
+            for kind, compiled in (("tower", TOWERS), ("relation", RELATIONS)):
+                index, _ = language.match_template(row, compiled)
+                if int(index) >= 0:
+                    found = (kind, int(index))
+                    break
+        out.append(found)
+    return out

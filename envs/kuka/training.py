@@ -26,7 +26,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from envs.kuka import expert, grid, scene
+from envs.kuka import expert, grammar, grid, scene
 from envs.kuka.config import COLUMNS, TaskSpec
 from envs.kuka.episode import Episode, generate
 from envs.kuka.task import NUM_GEN_CHANNELS, condition_from_view
@@ -130,6 +130,8 @@ class Recipe:
             raise ValueError(f"perturb_prob must be in [0, 1], got {self.perturb_prob}")
         if not self.goal_loss_weight > 0:
             raise ValueError(f"goal_loss_weight must be > 0, got {self.goal_loss_weight}")
+        if any(spec.language == "unseen" for spec in self.specs):
+            raise ValueError("training never draws the held-out ('unseen') phrasings")
 
     def batch_fn(self):
         """batch_fn(key, batch_size) -> diffplan.train.Batch."""
@@ -161,4 +163,4 @@ class Recipe:
         """What a checkpoint records of the recipe (compared when resuming)."""
         return {"specs": [[s.kind, s.multi, s.language] for s in self.specs],
                 "perturb_prob": self.perturb_prob, "goal_loss_weight": self.goal_loss_weight,
-                "num_gen_channels": NUM_GEN_CHANNELS}
+                "num_gen_channels": NUM_GEN_CHANNELS, "vocabulary": list(grammar.VOCAB)}
