@@ -102,6 +102,22 @@ def test_baseline_rows_beside_the_planner(tiny_run, tmp_path):
         assert len(row["SR_ci95"]) == 2
 
 
+def test_language_all_makes_a_row_per_phrasing(tiny_run):
+    """--language all: a row per phrasing and mode on the same worlds; the canonical rows are
+    those of --language canonical, the others say their phrasing in the method and JSON."""
+    out, _ = tiny_run
+    argv = ["--checkpoint", str(out / "train"), "--episodes", "4", "--batch-size", "4",
+            "--num-steps", "2", "--modes", "one_shot", "--no-progress"]
+    both = gridworld_cli.main("p_mo2g", argv + ["--language", "all"])
+    assert [r["method"] for r in both["rows"]] == ["one-shot", "one-shot, paraphrased",
+                                                   "one-shot, unseen"]
+    assert [r["language"] for r in both["rows"]] == ["canonical", "paraphrased", "unseen"]
+    assert both["language"] == "all"
+    canonical = gridworld_cli.main("p_mo2g", argv)
+    for key in ("SR", "SR_ordered", "GD", "path_f1"):
+        assert both["rows"][0][key] == canonical["rows"][0][key]
+
+
 def test_profile_writes_a_trace(tiny_run, tmp_path):
     out, _ = tiny_run
     gridworld_cli.main("p_mo2g", ["--checkpoint", str(out / "train"), "--episodes", "2", "--batch-size",

@@ -170,7 +170,7 @@ def test_cli_help_lists_every_flag(capsys):
     assert info.value.code == 0
     text = capsys.readouterr().out
     for flag in ("--setting", "--n", "--seed", "--out", "--figures", "--num-figures",
-                 "--paraphrase", "--chunk-size", "--no-compress", "--quiet", "--cache-dir"):
+                 "--paraphrase", "--language", "--chunk-size", "--no-compress", "--quiet", "--cache-dir"):
         assert flag in text
     for setting in ("1o1g", "mo1g", "p_mo2g"):
         assert setting in text

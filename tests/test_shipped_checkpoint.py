@@ -1,11 +1,14 @@
 """The shipped grid-world checkpoint still loads and still performs: on-the-fly SR and
 SR_ordered on 64 fresh P-MO2G episodes (seed 4242, used for no choice) at most one episode below
-what was measured when shipped (100 / 100, i.e. 64 of 64), on the executed trajectories."""
+what was measured when shipped (100 / 100, i.e. 64 of 64), on the executed trajectories, with
+canonical instructions and (the default warm-start row) with paraphrased and held-out ones."""
+import dataclasses
 import os
 
 import numpy as np
 import pytest
 
+from envs.gridworld.config import make_config
 from envs.gridworld.metrics import trajectory_metrics
 from experiments import gridworld_eval as ge, harness
 from experiments.gridworld_spec import SPECS, TRAINING_NAME
@@ -37,10 +40,12 @@ def test_checkpoint_config_matches_the_default_model(shipped):
     assert metadata["train_config"] == spec.train_config().to_dict()
 
 
-def _run_64(shipped, mode):
+def _run_64(shipped, mode, language="canonical"):
     """(episodes, rollout) of the mode on 64 fresh P-MO2G episodes of seed 4242 (a seed used
-    by no shipped number; README uses 1000), after checking SR and SR_ordered >= MIN_SR."""
+    by no shipped number; README uses 1000) phrased in ``language``, after checking SR and
+    SR_ordered >= MIN_SR."""
     spec, denoiser, _ = shipped
+    spec = dataclasses.replace(spec, language=language)
     task = spec.task(denoiser.num_gen_channels)
     episodes = ge.eval_episodes(spec.grid_config(), 64, seed=4242)
     rollout, _ = ge.evaluate_mode(spec, task, denoiser, episodes, 4242, mode, 64,
@@ -69,3 +74,12 @@ def test_default_warm_start_row_on_64_p_mo2g_episodes(shipped):
     _, rollout = _run_64(shipped, "warm_start")
     calls = float(np.mean(np.asarray(rollout.denoiser_calls)))
     assert calls <= 0.15 * spec.num_steps * float(np.mean(np.asarray(rollout.steps))), calls
+
+
+@pytest.mark.parametrize("language", ["paraphrased", "unseen"])
+def test_default_warm_start_row_follows_other_phrasings(shipped, language):
+    """Instructions in the training paraphrases and in the held-out phrasings (never in a
+    training batch) are followed as well as canonical ones, in the default warm-start row."""
+    episodes, _ = _run_64(shipped, "warm_start", language)
+    pool = make_config("p_mo2g", language=language).template_pool
+    assert set(np.asarray(episodes.template).tolist()) <= set(pool.tolist())

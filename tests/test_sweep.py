@@ -72,6 +72,7 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     ({"task": "kuka/stacking", "modes": "warm_start"}, "modes must be one planning mode"),
     ({"task": "kuka/rearrangement", "multi": "yes"}, "multi must be bool"),
     ({"task": "kuka/stacking", "language": "french"}, "language must be one of"),
+    ({"setting": "p_mo2g", "language": "both"}, "language must be one of"),
     ({"task": "kuka/stacking", "num_steps": 500}, "exceeds its schedule"),
 ])
 def test_bad_configurations_are_refused_in_one_line(tmp_path, capsys, config, message):
@@ -237,3 +238,15 @@ def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
         with np.load(tmp_path / "states" / f"config_{i:03d}.npz") as f:
             states = {k: f[k] for k in f.files}
         assert row["SR"] == pytest.approx(_recomputed_kuka_sr(states), abs=1e-9)
+
+
+def test_grid_phrasings_share_one_compiled_evaluation(tiny_checkpoint):
+    """language is a grid-world key too: the phrasing changes the episodes' tokens only, so a
+    second language reuses the first one's compiled evaluation."""
+    result = sweep.main(["--checkpoint", tiny_checkpoint, "--modes", "one_shot", "--num-steps",
+                         "2", "--episodes", "4", "--batch-size", "4", "--seed", "5",
+                         "--language", "canonical,unseen", "--no-progress"])
+    rows = result["rows"]
+    assert [r["language"] for r in rows] == ["canonical", "unseen"]
+    assert [r["method"] for r in rows] == ["one-shot", "one-shot, unseen"]
+    assert rows[0]["compile_seconds"] > 0 and rows[1]["compile_seconds"] == 0

@@ -1,7 +1,7 @@
 """Episode export (docs/DESIGN.md, contract 1): generated episodes as plain numpy arrays / an .npz file.
 
     python -m envs.gridworld.export --setting p_mo2g --n 2000 --seed 0 --out p_mo2g.npz \
-        [--figures figs/ --num-figures 8] [--paraphrase]
+        [--figures figs/ --num-figures 8] [--language canonical|paraphrased|unseen]
 
 The file holds exactly these arrays (N episodes, a 16 x 16 grid by default):
 
@@ -35,6 +35,7 @@ import time
 import jax
 
 from diffplan.jax_cache import enable_compilation_cache
+from diffplan.language import LANGUAGES
 import jax.numpy as jnp
 import numpy as np
 
@@ -243,9 +244,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", required=True,
                         help="output .npz path, written exactly as given (its directory must "
                              "exist); replaced atomically once complete")
+    parser.add_argument("--language", choices=LANGUAGES, default=None,
+                        help="instruction phrasing: 'canonical' (template 0, default), "
+                             "'paraphrased' (a training paraphrase) or 'unseen' (a held-out "
+                             "phrasing no training batch contains)")
     parser.add_argument("--paraphrase", action="store_true",
-                        help="draw each instruction uniformly from the setting's paraphrase "
-                             "templates instead of the canonical template 0")
+                        help="the same as --language paraphrased")
     parser.add_argument("--figures", metavar="DIR", default=None,
                         help="also write PNG figures of the first --num-figures episodes to DIR "
                              "(created if missing)")
@@ -298,7 +302,10 @@ def main(argv=None) -> int:
             parser.error(f"--figures {figures_dir}: directory is not writable")
 
     enable_compilation_cache(args.cache_dir)
-    config = make_config(args.setting, paraphrase=args.paraphrase)
+    if args.paraphrase and args.language not in (None, "paraphrased"):
+        parser.error(f"--paraphrase contradicts --language {args.language}")
+    language = "paraphrased" if args.paraphrase else (args.language or "canonical")
+    config = make_config(args.setting, language=language)
     started = time.perf_counter()
     arrays = export_episodes(config, args.n, args.seed, chunk_size=args.chunk_size,
                              progress=not args.quiet and args.n > min(args.chunk_size, 4096))
