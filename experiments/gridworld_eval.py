@@ -28,7 +28,8 @@ __all__ = ["ROLLOUT_STREAM", "concat_trees", "eval_episodes", "evaluate_mode", "
 
 STREAM_MODES = ("on_the_fly", "warm_start")
 """Modes run on the slot pool (a slot starts the next episode as soon as its episode ends)."""
-PER_SEED_FIELDS = ("SR", "SR_ordered", "GD", "path_f1", "denoiser_calls_per_episode", "seconds")
+PER_SEED_FIELDS = ("SR", "SR_ordered", "GD", "path_f1", "SPL", "denoiser_calls_per_episode",
+                   "seconds")
 
 
 def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
@@ -134,7 +135,8 @@ def metrics_row(method, rollout, episodes, seconds, has_reference):
     row = {"method": method}
     row.update(trajectory_metrics(rollout.positions, rollout.steps, episodes.target,
                                   episodes.expert_path,
-                                  episodes.reference if has_reference else None))
+                                  episodes.reference if has_reference else None,
+                                  episodes.expert_length))
     row.update(plan_metrics(rollout.first_plan[..., 0], episodes.expert_path))
     row["collisions_per_episode"] = float(np.mean(rollout.final_state.collisions))
     row["denoiser_calls_per_episode"] = float(np.mean(rollout.denoiser_calls))
@@ -171,7 +173,8 @@ def pooled_row(method, outs: dict, episodes_by_seed: dict, has_reference: bool,
 TABLE_COLUMNS = (("method", "{:<22}", "method"), ("SR", "{:>7.2f}", "SR"),
                  ("SR_ordered", "{:>7.2f}", "SR_ord"), ("GD", "{:>6.3f}", "GD"),
                  ("path_precision", "{:>7.2f}", "Prec"), ("path_recall", "{:>7.2f}", "Rec"),
-                 ("path_f1", "{:>7.2f}", "F1"), ("plan_f1", "{:>7.2f}", "planF1"),
+                 ("path_f1", "{:>7.2f}", "F1"), ("SPL", "{:>6.3f}", "SPL"),
+                 ("plan_f1", "{:>7.2f}", "planF1"),
                  ("denoiser_calls_per_episode", "{:>8.1f}", "calls"),
                  ("seconds", "{:>8.1f}", "sec"))
 

@@ -58,9 +58,10 @@ def test_trajectories_file_recomputes_the_main_row(tiny_run):
     assert traj["grid"].dtype == np.int8 and traj["grid"].shape == (6, 16, 16)
     # Anyone can recompute the metrics of the main row from what the agent did.
     recomputed = metrics.trajectory_metrics(traj["positions"], traj["steps"], traj["target"],
-                                            traj["expert_path"], traj["reference"])
+                                            traj["expert_path"], traj["reference"],
+                                            traj["expert_length"])
     row = next(r for r in result["rows"] if r["method"] == result["trajectories_method"])
-    for key in ("SR", "SR_ordered", "GD", "path_precision", "path_recall", "path_f1"):
+    for key in ("SR", "SR_ordered", "GD", "path_precision", "path_recall", "path_f1", "SPL"):
         assert recomputed[key] == pytest.approx(row[key]), key
     # Executed moves are 4-connected, inside the grid, never into an obstacle.
     pos = traj["positions"]

@@ -1,6 +1,7 @@
 """envs.gridworld.metrics against hand-computed cases."""
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from envs.gridworld import metrics
 
@@ -76,3 +77,38 @@ def test_plan_metrics_threshold_at_zero():
 def test_empty_predictions_give_zero_not_nan():
     p, r, f = metrics.precision_recall_f1(np.zeros((1, 4, 4), bool), np.ones((1, 4, 4), bool))
     assert (p, r, f) == (0.0, 0.0, 0.0)
+
+
+# ------------------------------------------------------------------ SPL
+
+def _spl_oracle(success, p, l):
+    total = 0.0
+    for s, pi, li in zip(success, p, l):
+        if s:
+            total += 1.0 if li == 0 else li / max(pi, li)
+    return total / len(success)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.booleans(), st.integers(0, 100), st.integers(0, 100)),
+                min_size=1, max_size=30))
+def test_spl_against_a_plain_loop(cases):
+    from envs.gridworld.metrics import spl
+
+    success, p, l = map(list, zip(*cases))
+    value = spl(success, p, l)
+    assert value == pytest.approx(_spl_oracle(success, p, l))
+    assert 0.0 <= value <= np.mean(success) + 1e-12
+
+
+def test_spl_of_the_expert_is_its_success_rate():
+    """An agent that walks the expert's path scores SPL = SR / 100; one twice as long, half."""
+    from envs.gridworld.metrics import trajectory_metrics
+
+    positions = np.zeros((2, 5, 2), np.int32)
+    positions[:, 1:, 1] = np.arange(1, 5)  # four moves east
+    steps = np.array([4, 4])
+    target = np.array([[0, 4], [0, 4]])
+    expert = np.zeros((2, 8, 8), bool)
+    m = trajectory_metrics(positions, steps, target, expert, expert_length=np.array([4, 2]))
+    assert m["SR"] == 100.0 and m["SPL"] == pytest.approx((1.0 + 0.5) / 2)

@@ -11,6 +11,10 @@ every number from what the agent actually did.
   cell on the expert path), pooled over episodes, in percent.
 - plan metrics: the same precision / recall / F1 on the first predicted path map (path channel
   > 0), the paper's one-shot plan numbers.
+- SPL: success weighted by path length (Anderson et al. 2018), mean over episodes of
+  S_i * l_i / max(p_i, l_i), in [0, 1]: l_i the expert's moves (the shortest path with the
+  whole map known, via the reference where there is one), p_i the agent's moves (collisions
+  included: a bump costs a move), S_i success (SR_ordered's where there is a reference).
 """
 from __future__ import annotations
 
@@ -37,13 +41,26 @@ def final_positions(positions, steps):
     return positions[np.arange(len(positions)), np.asarray(steps)]
 
 
-def trajectory_metrics(positions, steps, target, expert_path, reference=None):
+def spl(success, agent_moves, expert_moves) -> float:
+    """Success weighted by path length in [0, 1]: mean of S_i * l_i / max(p_i, l_i).
+    success bool (N,); agent_moves p int (N,); expert_moves l int (N,) (>= 0; an episode with
+    l = 0 counts 1 if it succeeded)."""
+    success = np.asarray(success, bool)
+    p = np.asarray(agent_moves, np.float64)
+    l = np.asarray(expert_moves, np.float64)
+    ratio = np.where(l > 0, l / np.maximum(np.maximum(p, l), 1e-9), 1.0)
+    return float(np.mean(np.where(success, ratio, 0.0)))
+
+
+def trajectory_metrics(positions, steps, target, expert_path, reference=None,
+                       expert_length=None):
     """Metrics of executed trajectories (see module docstring).
 
     Args: positions int (N, T+1, 2); steps int (N,); target int (N, 2); expert_path bool
-    (N, H, W); reference int (N, 2) with (-1, -1) where none, or None.
+    (N, H, W); reference int (N, 2) with (-1, -1) where none, or None; expert_length int (N,)
+    the expert's moves, or None.
     Returns a dict: SR, GD, path_precision, path_recall, path_f1, mean_steps (and SR_ordered
-    when references are given).
+    when references are given, SPL when expert lengths are).
     """
     positions = np.asarray(positions)
     steps = np.asarray(steps)
@@ -70,6 +87,9 @@ def trajectory_metrics(positions, steps, target, expert_path, reference=None):
         on_ref = np.all(positions == reference[:, None, :], axis=-1) & valid
         ordered = success & (np.any(on_ref, axis=1) | ~has_ref)
         out["SR_ordered"] = 100.0 * float(np.mean(ordered))
+        success = ordered
+    if expert_length is not None:
+        out["SPL"] = spl(success, steps, expert_length)
     return out
 
 
