@@ -201,7 +201,7 @@ def test_make_config():
     assert make_config("1o1g").max_obstacles == 0
     assert make_config("p_mo2g").view_radius == 6
     assert make_config("mo1g").view_radius is None
-    assert make_config("p_mo2g", paraphrase=True).paraphrase
+    assert make_config("p_mo2g", paraphrase=True).language == "paraphrased"
     with pytest.raises(ValueError, match="unknown setting"):
         make_config("p_mo3g")
     with pytest.raises(ValueError, match="view_radius"):

@@ -95,8 +95,8 @@ def test_1o1g_episodes_seen_in_training_are_counted_and_left_out(tmp_path):
     episodes = ge.eval_episodes(training.make_config("1o1g"), 300, 2001)
     overlap = ge.training_overlap(checkpoint, "1o1g", episodes)
     seen = set(fingerprints(training.training_episodes(
-        "1o1g", seed=0, steps=8000, batch_size=64)))
-    assert overlap.tolist() == [f in seen for f in fingerprints(episodes)]
+        "1o1g", seed=0, steps=8000, batch_size=64, language="mixed"), instruction=False))
+    assert overlap.tolist() == [f in seen for f in fingerprints(episodes, instruction=False)]
     assert 10 <= overlap.sum() <= 45  # ~8% of 300
     out = tmp_path / "r.json"
     traj = tmp_path / "t.npz"
