@@ -176,7 +176,7 @@ class TemplateSplit:
             raise ValueError("templates must be distinct")
         if not all(0 < i < n for i in self.unseen) or len(set(self.unseen)) != len(self.unseen):
             raise ValueError(f"unseen must be distinct indices in 1..{n - 1}, got {self.unseen}")
-        known = template_words([self.templates[i] for i in self.training], self.slots)
+        known = self.training_words()
         for i in self.unseen:
             new = sorted(template_words([self.templates[i]], self.slots) - known)
             if new:
@@ -187,6 +187,11 @@ class TemplateSplit:
     def training(self) -> tuple[int, ...]:
         """Template indices training draws from (canonical and the training paraphrases)."""
         return tuple(i for i in range(len(self.templates)) if i not in self.unseen)
+
+    def training_words(self) -> set[str]:
+        """Every word of the training phrasings (slots excepted): the vocabulary they need,
+        which the held-out ones share."""
+        return template_words([self.templates[i] for i in self.training], self.slots)
 
     def pool(self, language: str) -> np.ndarray:
         """int32 (P,) template indices an episode of ``language`` draws from uniformly
@@ -207,6 +212,14 @@ def check_language(language: str, training: bool = True) -> str:
     if language not in allowed:
         raise ValueError(f"unknown language {language!r}; expected one of {allowed}")
     return language
+
+
+def check_training_language(language: str) -> str:
+    """language if training may draw it (ValueError for "unseen": the held-out phrasings never
+    reach a training batch), checked as :func:`check_language`."""
+    if language == "unseen":
+        raise ValueError("training never draws the held-out ('unseen') phrasings")
+    return check_language(language)
 
 
 def draw_template(key, pool, shape=()):

@@ -7,6 +7,7 @@ import dataclasses
 import os
 
 from experiments import recipes
+from experiments import harness
 from experiments.harness import CHECKPOINT_ROOT, REPO_ROOT
 
 TRAINING_NAME = "compile_gridworld"
@@ -24,10 +25,7 @@ when the observation changed or the plan's sub-goal was reached."""
 METHOD_NAMES = {"one_shot": "one-shot", "k_shot": "two-shot", "on_the_fly": "on-the-fly",
                 "warm_start": "warm-start on-the-fly"}
 
-LANGUAGE_CHOICES = {"canonical": ("canonical",), "paraphrased": ("paraphrased",),
-                    "unseen": ("unseen",), "all": ("canonical", "paraphrased", "unseen")}
-"""--language of the grid-world CLIs and sweeps: the phrasings (diffplan.language.LANGUAGES)
-a run makes rows for; "unseen" are the held-out phrasings training never saw."""
+LANGUAGE_CHOICES = harness.LANGUAGE_CHOICES
 
 
 def method_name(mode_or_name: str, language: str = "canonical") -> str:

@@ -19,6 +19,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffplan.language import LANGUAGES
+
+LANGUAGE_CHOICES = {**{language: (language,) for language in LANGUAGES}, "all": LANGUAGES}
+"""--language of the experiment CLIs and sweeps: one phrasing (diffplan.language.LANGUAGES;
+"unseen" the held-out phrasings training never saw) or a row for each ("all")."""
+
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHECKPOINT_ROOT = os.path.join(REPO_ROOT, "checkpoints")
 VALIDATION_SEED = 1000
@@ -157,6 +163,7 @@ def format_intervals(rows, seeds, width: int) -> str:
     """Per-seed SR and the pooled 95% intervals, one line per row (and SR_ordered's where a row
     has its interval)."""
     lines = [f"SR per seed ({', '.join(map(str, seeds))}) and 95% interval of the pooled SR:"]
+    width = max([width] + [len(r["method"]) for r in rows])
     for row in rows:
         per = " / ".join(f"{row['per_seed'][str(s)]['SR']:.1f}" for s in seeds)
         lo, hi = row["SR_ci95"]
@@ -165,7 +172,6 @@ def format_intervals(rows, seeds, width: int) -> str:
             olo, ohi = row["SR_ordered_ci95"]
             per_o = " / ".join(f"{row['per_seed'][str(s)]['SR_ordered']:.1f}" for s in seeds)
             extra = f"; SR_ordered {per_o} [{olo:.2f}, {ohi:.2f}]"
-        width = max(width, max(len(r["method"]) for r in rows))
         lines.append(f"  {row['method']:<{width}} {per} [{lo:.2f}, {hi:.2f}]{extra}")
     return "\n".join(lines)
 

@@ -6,7 +6,7 @@ import os
 import warnings
 
 from experiments import recipes
-from experiments.harness import CHECKPOINT_ROOT, REPO_ROOT
+from experiments.harness import CHECKPOINT_ROOT, LANGUAGE_CHOICES, LANGUAGES, REPO_ROOT
 
 DEFAULT_EPISODES = 200
 DEFAULT_BATCH = 64
@@ -16,11 +16,10 @@ MODES = ("on_the_fly", "one_shot")
 on-the-fly planning, the main rows), or one plan at t = 0 followed to the end."""
 MAIN_MODE = "on_the_fly"
 METHOD_NAMES = {"on_the_fly": "on-the-fly", "one_shot": "one-shot"}
-LANGUAGES = ("canonical", "paraphrased", "unseen")
-"""Instruction phrasings (envs.kuka.grammar.LANGUAGES): Table 2's, the training paraphrases
-(Table 5's "complex" instructions), the held-out phrasings training never saw."""
-LANGUAGE_CHOICES = {**{language: (language,) for language in LANGUAGES},
-                    "both": ("canonical", "paraphrased"), "all": LANGUAGES}
+
+# Instruction phrasings (LANGUAGES, diffplan.language's): Table 2's, the training paraphrases
+# (Table 5's "complex" instructions), the held-out phrasings training never saw.
+LANGUAGE_CHOICES = {**LANGUAGE_CHOICES, "both": ("canonical", "paraphrased")}
 """--language of the Kuka CLIs: one phrasing, canonical and paraphrased ("both", the README's
 Table 5 command), or all three."""
 CARRIES = ("path", "arc")

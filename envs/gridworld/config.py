@@ -52,9 +52,10 @@ class GridConfig:
                 errors.append(f"paraphrase=True contradicts language={self.language!r}")
             object.__setattr__(self, "language", "paraphrased")
             object.__setattr__(self, "paraphrase", False)
-        if self.language not in grammar.LANGUAGES + (language.TRAINING,):
-            errors.append(f"unknown language {self.language!r}; expected one of "
-                          f"{grammar.LANGUAGES + (language.TRAINING,)}")
+        try:
+            language.check_language(self.language)
+        except ValueError as e:
+            errors.append(str(e))
         if self.setting not in SETTINGS:
             errors.append(f"unknown setting {self.setting!r}; expected one of {SETTINGS}")
         if self.size < 4:

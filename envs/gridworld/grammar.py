@@ -103,8 +103,8 @@ def split_words(text: str) -> list[str]:
 
 
 def _build_vocab() -> tuple[str, ...]:
-    templates = [t for ts in TEMPLATES.values() for t in ts]
-    words = set(OBJECT_NAMES) | set(DIRECTIONS) | language.template_words(templates, _SLOT_NAMES)
+    words = set(OBJECT_NAMES) | set(DIRECTIONS) | set().union(
+        *(split.training_words() for split in SPLITS.values()))
     # Object names first (right after the specials) so that their ids are stable and compact.
     rest = sorted(words - set(OBJECT_NAMES))
     return SPECIAL_TOKENS + OBJECT_NAMES + tuple(rest)

@@ -17,6 +17,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from diffplan.language import check_training_language
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
@@ -170,8 +171,7 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
     :func:`make_batch_fn`."""
     from diffplan.train import Batch
 
-    if language == "unseen":
-        raise ValueError("training never draws the held-out ('unseen') phrasings")
+    check_training_language(language)
     total = sum(count for _, count in mixture)
     fns = [(make_batch_fn(make_config(setting, language=language), goal_channel,
                           **example_kwargs), count)

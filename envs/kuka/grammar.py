@@ -62,9 +62,7 @@ in a training phrasing, so the vocabulary is that of the training phrasings)."""
 
 
 def _build_vocab() -> tuple[str, ...]:
-    words = language.template_words(
-        [RELATION_TEMPLATES[i] for i in RELATION_SPLIT.training]
-        + [TOWER_TEMPLATES[i] for i in TOWER_SPLIT.training], SLOTS)
+    words = RELATION_SPLIT.training_words() | TOWER_SPLIT.training_words()
     # Block colours right after the padding: block i has token id i + 1.
     return (PAD,) + BLOCK_NAMES + tuple(sorted(words - set(BLOCK_NAMES)))
 
