@@ -59,8 +59,10 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
             for seed in seeds:
                 t0 = time.time()
                 eps = episodes[spec, seed]
-                final = (ke.run_planner(task, planner, eps, seed, args.batch_size, bar, run=run)
-                         if planner is not None else ke.run_expert(eps, args.batch_size, bar))
+                final = (ke.run_planner(task, planner, eps, seed, args.batch_size, bar, run=run,
+                                        settle=args.settle)
+                         if planner is not None
+                         else ke.run_expert(eps, args.batch_size, bar, settle=args.settle))
                 per_seed[seed] = ke.column_metrics("", "", eps, final, time.time() - t0)
                 parts.append(final)
             final = {k: np.concatenate([d[k] for d in parts]) for k in parts[0]}
@@ -70,7 +72,7 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
                                     sum(r["seconds"] for r in per_seed.values()))
             row.update(mode=mode, language=spec.language)
             if len(seeds) > 1:
-                ke.add_intervals(row, per_seed)
+                ke.add_intervals(row, ke.episode_counts(eps, final), per_seed)
             rows[mode, spec], finals[mode, spec] = row, (eps, final)
     return rows, finals
 
@@ -80,8 +82,8 @@ def _print_summary(kind, args, seeds, checkpoint, all_rows) -> None:
           f"{','.join(map(str, seeds))}, policy {args.policy}"
           + (f" ({os.path.relpath(checkpoint, harness.REPO_ROOT)}, {args.num_steps} denoising "
              f"steps per plan)" if checkpoint else "")
-          + "; success on final physical poses (SR strict, contract 4; SR_Diff Diffuser's "
-            "check)")
+          + f"; success on the physical poses after {args.settle:g} s at rest (SR strict, "
+            "contract 4; SR_Diff Diffuser's check; SPL over placements)")
     print(ke.format_table(all_rows))
     if len(seeds) > 1:
         print(harness.format_intervals(all_rows[1:], seeds, 46))
@@ -173,7 +175,8 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
                              [rows[main_mode, s] for s in main_specs],
                              sum(rows[main_mode, s]["seconds"] for s in main_specs))
     if len(seeds) > 1:
-        ke.add_intervals(main_row)
+        counts = [ke.episode_counts(*finals[main_mode, s]) for s in main_specs]
+        ke.add_intervals(main_row, tuple(np.concatenate(c) for c in zip(*counts)))
     all_rows = [main_row] + [rows[m, s] for m in modes for s in specs]
     result = {
         "experiment": f"kuka_{kind}", "episodes": args.episodes, "seed": seeds[0],
@@ -182,7 +185,7 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
         "modes": [m for m in modes if m is not None],
         "checkpoint": os.path.relpath(checkpoint, harness.REPO_ROOT) if checkpoint else None,
         "num_steps": args.num_steps if planner_policy else None,
-        "carry": args.carry if planner_policy else None,
+        "carry": args.carry if planner_policy else None, "settle_seconds": args.settle,
         "train_seconds": train_seconds, "states_method": main_row["method"],
         "paper": {name: dict(zip(("single", "multi"), values))
                   for name, values in ks.PAPER[kind].items()},

@@ -13,8 +13,9 @@ import os
 import jax
 import numpy as np
 
-from experiments.harness import (format_table as _table, per_seed_values, planner_keys,
-                                 rate_interval, rollout_fn, seeded_episodes)
+from envs.kuka.env import SETTLE_SECONDS
+from experiments.harness import (clustered_interval, format_table as _table, per_seed_values,
+                                 planner_keys, rollout_fn, seeded_episodes)
 
 
 def generate_episodes(spec, n: int, seed: int, batch: int):
@@ -34,6 +35,18 @@ def _physical(states) -> dict:
             "placements": states.t, "done": states.done}
 
 
+def _at_rest(states, settle: float) -> dict:
+    """The final physical state after ``settle`` simulated seconds at rest (env.settle; 0: as
+    released), with the poses as released kept as released_pos / released_held."""
+    from envs.kuka import env
+
+    released = _physical(states)
+    if settle > 0:
+        states = env.settle_batch(states, np.float32(settle))
+    out = _physical(states)
+    return dict(out, released_pos=released["block_pos"], released_held=released["held"])
+
+
 def _batches(episodes, batch: int, bar, run_batch) -> dict:
     """run_batch(idx, chunk) -> dict of arrays over every episode, in calls of `batch` (the
     last padded with copies of its last episode, dropped afterwards); concatenated numpy."""
@@ -50,25 +63,29 @@ def _batches(episodes, batch: int, bar, run_batch) -> dict:
     return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
 
 
-def run_expert(episodes, batch: int, bar=None):
-    """The scripted expert on every episode, in calls of `batch` (the last padded).
+def run_expert(episodes, batch: int, bar=None, settle: float = SETTLE_SECONDS):
+    """The scripted expert on every episode, in calls of `batch` (the last padded), the blocks
+    then left to settle for ``settle`` simulated seconds.
 
-    Returns dict of numpy arrays: block_pos (n, 4, 3), block_quat (n, 4, 4), held (n, 4),
+    Returns dict of numpy arrays: block_pos (n, 4, 3), block_quat (n, 4, 4), held (n, 4) at
+    rest; released_pos (n, 4, 3), released_held (n, 4) as the last placement left them;
     placements (n,), done (n,), frames (n, MAX_STEPS, F, nq)."""
     from envs.kuka import env, expert
 
     def run_batch(idx, chunk):
         states, frames = expert.run_expert(env.reset_batch(chunk))
-        return dict(_physical(states), frames=frames)
+        return dict(_at_rest(states, settle), frames=frames)
 
     return _batches(episodes, batch, bar, run_batch)
 
 
-def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=None):
+def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=None,
+                settle: float = SETTLE_SECONDS):
     """The planner on every episode with diffplan.rollout, in calls of `batch` episodes (the
-    last padded to the compiled size). Returns the final physical states (as
-    :func:`run_expert`, without frames) plus denoiser_calls and num_plans (n,). run: the
-    jitted (planner, keys, episodes, token) -> Rollout (default harness.rollout_fn(task)).
+    last padded to the compiled size), the blocks then left to settle for ``settle`` simulated
+    seconds. Returns the final physical states (as :func:`run_expert`, without frames) plus
+    denoiser_calls and num_plans (n,). run: the jitted (planner, keys, episodes, token) ->
+    Rollout (default harness.rollout_fn(task)).
 
     Not the slot pool (diffplan.rollout_stream): its jitted program, with a physics reset and
     a pick-and-place in one loop body, needed more than 7 GB of memory to compile here (the
@@ -77,18 +94,19 @@ def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=No
 
     def run_batch(idx, chunk):
         out = run(planner, planner_keys(seed, idx), chunk, 0)
-        return dict(_physical(out.final_state), denoiser_calls=out.denoiser_calls,
+        return dict(_at_rest(out.final_state, settle), denoiser_calls=out.denoiser_calls,
                     num_plans=out.num_plans)
 
     return _batches(episodes, batch, bar, run_batch)
 
 
-def constraint_success(episodes, final):
+def constraint_success(episodes, final, pos_key: str = "block_pos", held_key: str = "held"):
     """(strict, diffuser) bool (n, 3): each instructed constraint holds at the end (padding
-    rows False), by contract 4's check and by Diffuser's."""
+    rows False), by contract 4's check and by Diffuser's (the poses final[pos_key],
+    final[held_key])."""
     from envs.kuka import metrics
 
-    pos, held = final["block_pos"], final["held"]
+    pos, held = final[pos_key], final[held_key]
     constraints = np.asarray(episodes.constraints)
     out = []
     for check in (metrics.on_matrix, metrics.diffuser_on_matrix):
@@ -97,14 +115,45 @@ def constraint_success(episodes, final):
     return out[0], out[1]
 
 
+def episode_counts(episodes, final):
+    """(successes, constraints) int (n,): each episode's instructed constraints that hold
+    (strict, contract 4) and its number of instructed constraints (the clusters of
+    :func:`add_intervals`)."""
+    strict, _ = constraint_success(episodes, final)
+    valid = np.asarray(episodes.constraints)[..., 0] >= 0
+    return (strict & valid).sum(-1), valid.sum(-1)
+
+
+def placement_spl(episodes, final) -> float:
+    """SPL over placements: the mean of S_i * l_i / max(p_i, l_i), S_i the episode's success
+    (every instructed constraint holds and, for stacking, one tower of four), l_i the
+    placements needed (the expert's goal relations: every block starts on the floor), p_i the
+    placements used."""
+    from envs.kuka import metrics
+
+    strict, _ = constraint_success(episodes, final)
+    valid = np.asarray(episodes.constraints)[..., 0] >= 0
+    tower = np.asarray(jax.vmap(metrics.single_tower)(final["block_pos"], final["held"]))
+    success = (strict | ~valid).all(-1) & (tower | ~np.asarray(episodes.tower, bool))
+    needed = (np.asarray(episodes.goal)[..., 0] >= 0).sum(-1)
+    used = np.asarray(final["placements"])
+    return float(np.mean(success * needed / np.maximum(np.maximum(used, needed), 1)))
+
+
 def column_metrics(method: str, column: str, episodes, final, seconds: float) -> dict:
-    """A results row from the final physical states (numpy)."""
+    """A results row from the final physical states (numpy). settle_changed counts the
+    instructed constraints whose strict success changed while the blocks settled (0 when the
+    final states have no released poses)."""
     from envs.kuka import metrics
 
     strict, loose = constraint_success(episodes, final)
     valid = np.asarray(episodes.constraints)[..., 0] >= 0
     tower = np.asarray(jax.vmap(metrics.single_tower)(final["block_pos"], final["held"]))
     is_stacking = bool(np.asarray(episodes.tower).all())
+    changed = 0
+    if "released_pos" in final:
+        released, _ = constraint_success(episodes, final, "released_pos", "released_held")
+        changed = int(((released != strict) & valid).sum())
     row = {
         "method": method, "column": column, "episodes": int(len(valid)),
         "constraints": int(valid.sum()),
@@ -113,6 +162,8 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
         "all_constraints": 100.0 * np.mean((strict | ~valid).all(-1)),
         "tower": 100.0 * tower.mean() if is_stacking else None,
         "placements_per_episode": float(np.mean(final["placements"])),
+        "SPL": placement_spl(episodes, final),
+        "settle_changed": changed,
         "seconds": float(seconds),
     }
     if "denoiser_calls" in final:
@@ -121,19 +172,20 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
     return row
 
 
-def add_intervals(row: dict, per_seed: dict | None = None) -> None:
-    """Adds SR_ci95 (95% Wilson interval of the pooled constraint success rate; constraints
-    of one episode are counted as independent trials) and, given the per-seed rows, per-seed
-    SR to a row."""
-    row["SR_ci95"] = rate_interval(row["SR"], row["constraints"])
+def add_intervals(row: dict, counts, per_seed: dict | None = None) -> None:
+    """Adds SR_ci95 (the 95% interval of the pooled constraint success rate over episodes, the
+    constraints of one episode one cluster: harness.clustered_interval of counts, the
+    (successes, constraints) of :func:`episode_counts`) and, given the per-seed rows, per-seed
+    SR and SPL to a row."""
+    row["SR_ci95"] = clustered_interval(*counts)
     if per_seed is not None:
-        row["per_seed"] = per_seed_values(per_seed, ("SR", "SR_diffuser", "seconds"))
+        row["per_seed"] = per_seed_values(per_seed, ("SR", "SR_diffuser", "SPL", "seconds"))
 
 
 TABLE_COLUMNS = (("method", "{:<46}", "method"), ("episodes", "{:>6d}", "eps"),
                  ("SR", "{:>7.2f}", "SR"), ("SR_diffuser", "{:>8.2f}", "SR_Diff"),
                  ("all_constraints", "{:>7.2f}", "all"), ("tower", "{:>7.2f}", "tower"),
-                 ("placements_per_episode", "{:>6.2f}", "moves"),
+                 ("placements_per_episode", "{:>6.2f}", "moves"), ("SPL", "{:>6.3f}", "SPL"),
                  ("denoiser_calls_per_episode", "{:>6.1f}", "calls"),
                  ("seconds", "{:>7.1f}", "sec"))
 
@@ -159,6 +211,8 @@ def pooled_row(method: str, rows, seconds: float) -> dict:
            "all_constraints": mean("all_constraints", "episodes"),
            "tower": mean("tower", "episodes"),
            "placements_per_episode": mean("placements_per_episode", "episodes"),
+           "SPL": mean("SPL", "episodes"),
+           "settle_changed": sum(r.get("settle_changed", 0) for r in rows),
            "seconds": float(seconds)}
     if any("denoiser_calls_per_episode" in r for r in rows):
         row["denoiser_calls_per_episode"] = mean("denoiser_calls_per_episode", "episodes")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from envs.kuka.env import SETTLE_SECONDS
 from experiments import cli, harness
 from experiments.kuka_spec import (CARRIES, CHECKPOINT_EVERY, DEFAULT_BATCH, DEFAULT_EPISODES,
                                    LANGUAGE_CHOICES, MODES, NUM_STEPS, POLICIES, TRAIN_STEPS,
@@ -43,6 +44,10 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
     p.add_argument("--carry", choices=CARRIES, default="path",
                    help="carry blocks along the in-painted path ('path', default) or the "
                         "expert's arc around the base ('arc')")
+    p.add_argument("--settle", type=float, default=SETTLE_SECONDS, metavar="SECONDS",
+                   help="simulated seconds the blocks rest (suction off, the arm in its retreat "
+                        f"pose) before success is read (default {SETTLE_SECONDS:g}; 0 reads the "
+                        "poses as the last placement left them)")
     p.add_argument("--json", metavar="PATH", help="write the results (contract 2) as JSON")
     p.add_argument("--states", metavar="PATH.npz",
                    help="write the final physics state of every episode of the main row "
@@ -70,6 +75,10 @@ TRAIN_FLAGS = {"train_dir": "--train-dir", "train_steps": "--train-steps",
                "model_size": "--model-size"}
 
 
+MAX_SETTLE = 10.0
+"""Longest --settle (2000 physics steps per episode)."""
+
+
 def check_args(parser, args) -> tuple[str, ...]:
     """Validates the arguments (one-line errors before any work); returns the modes."""
     cli.check_training_flags(parser, args, TRAIN_FLAGS)
@@ -81,6 +90,9 @@ def check_args(parser, args) -> tuple[str, ...]:
                                  ("--num-figures", args.num_figures, 0),
                                  ("--num-videos", args.num_videos, 0)):
         cli.check_at_least(parser, flag, value, minimum)
+    if not 0.0 <= args.settle <= MAX_SETTLE:
+        parser.error(f"--settle must be between 0 and {MAX_SETTLE:g} simulated seconds, got "
+                     f"{args.settle}")
     cli.check_output_file(parser, "--json", args.json)
     cli.check_output_file(parser, "--states", args.states, suffix=".npz")
     for flag in ("figures", "video", "train_dir"):

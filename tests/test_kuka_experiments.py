@@ -11,7 +11,7 @@ import pytest
 
 import kuka_fixtures as kf
 from envs.kuka import grammar, render
-from experiments import kuka_cli, kuka_spec
+from experiments import harness, kuka_cli, kuka_spec
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 
@@ -67,11 +67,30 @@ def test_cli_end_to_end(kind, tmp_path):
     assert single["SR"] == pytest.approx(_recomputed_sr(states, range(4)), abs=1e-9)
     assert multi["SR"] == pytest.approx(_recomputed_sr(states, range(4, 8)), abs=1e-9)
     assert main["SR"] == 100.0 and main["SR_diffuser"] == 100.0
+    # Scored after 1 s at rest; the expert's blocks stay put and it never moves a block twice.
+    assert data["settle_seconds"] == 1.0
+    assert main["settle_changed"] == single["settle_changed"] == multi["settle_changed"] == 0
+    assert main["SPL"] == single["SPL"] == multi["SPL"] == 1.0
     # The instructions are the episodes' constraints in words.
     for c, text in zip(states["constraints"], states["instruction"]):
         tower_sentence = kind == "stacking" and (c[:, 0] >= 0).sum() == 1
         assert str(text) == grammar.render(c, tower_sentence)
     assert len(list(figs.glob("*.png"))) == 2
+
+
+def test_intervals_over_seeds_count_episodes_not_constraints(capsys):
+    """With several seeds every row has a 95% interval whose trials are the episodes (a
+    multi-constraint episode is one cluster), and per-seed SR and SPL."""
+    result = kuka_cli.main("stacking", [
+        "--policy", "expert", "--episodes", "2", "--seeds", "5,6", "--batch-size", str(kf.BATCH),
+        "--no-progress"])
+    main, single, multi = result["rows"]
+    assert single["SR_ci95"] == pytest.approx(harness.wilson_interval(4, 4))
+    assert multi["constraints"] == 12 and multi["SR_ci95"] == pytest.approx(
+        harness.wilson_interval(4, 4))
+    assert main["SR_ci95"] == pytest.approx(harness.wilson_interval(8, 8))
+    assert set(multi["per_seed"]) == {"5", "6"} and multi["per_seed"]["6"]["SPL"] == 1.0
+    assert "95% interval" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -82,6 +101,7 @@ def test_cli_end_to_end(kind, tmp_path):
     (["--train-steps", "5"], "only makes sense with --train"),
     (["--modes", "two_shot"], "--modes must be distinct modes"),
     (["--seeds", "1,1"], "--seeds must be distinct"),
+    (["--settle", "-1"], "--settle must be between 0 and 10"),
 ])
 def test_cli_rejects_bad_input(argv, message, capsys):
     with pytest.raises(SystemExit) as info:

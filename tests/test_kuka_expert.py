@@ -82,3 +82,24 @@ def test_expert_after_the_end_reports_every_relation_done():
     again = env.step_batch(final, steps.action)
     np.testing.assert_array_equal(np.asarray(again.data.qpos), np.asarray(final.data.qpos))
     np.testing.assert_array_equal(np.asarray(again.t), np.asarray(final.t))
+
+
+def test_settling_keeps_the_experts_towers_and_lets_a_lifted_block_fall():
+    """env.settle: 1 s at rest, suction off. The expert's towers stand (every block moves
+    < 5 mm, t and done kept); a block lifted 5 cm before settling lands on the floor."""
+    final, _ = kf.expert_run("stacking_multi", 11)
+    pos = np.asarray(jax.vmap(physics.block_pos)(final.data))
+    settled = jax.device_get(env.settle_batch(final, np.float32(1.0)))
+    after = np.asarray(jax.vmap(physics.block_pos)(settled.data))
+    assert np.abs(after - pos).max() < 0.005
+    np.testing.assert_array_equal(settled.t, final.t)
+    np.testing.assert_array_equal(settled.done, final.done)
+    states = env.reset_batch(kf.episodes("rearrangement_single", 11))
+    start = np.asarray(jax.vmap(physics.block_pos)(states.data))
+    lifted = start.copy()
+    lifted[:, 0, 2] += 0.05
+    quat = jax.vmap(physics.block_quat)(states.data)
+    states = states.replace(data=jax.vmap(physics.set_blocks)(states.data, lifted, quat))
+    fallen = np.asarray(jax.vmap(physics.block_pos)(env.settle_batch(states,
+                                                                     np.float32(1.0)).data))
+    np.testing.assert_allclose(fallen[:, :, 2], start[:, :, 2], atol=0.003)

@@ -127,10 +127,26 @@ def step(state: State, action) -> State:
     return step_along(state, action, waypoints)
 
 
+SETTLE_SECONDS = 1.0
+"""Simulated seconds the blocks settle, the arm held in its retreat pose and nothing held,
+before success is read (experiments.kuka_eval)."""
+
+
+def settle(state: State, seconds: float = SETTLE_SECONDS) -> State:
+    """The state after ``seconds`` (float, may be traced) more of physics at rest: suction off, the
+    arm's servo targets held where the last placement's retreat left them (its flange 0.1 m
+    above the block it released), nothing else changed (t, done and the episode are kept)."""
+    num = jnp.round(jnp.asarray(seconds, jnp.float32) / scene.TIMESTEP).astype(jnp.int32)
+    data = state.data.replace(eq_active=jnp.zeros_like(state.data.eq_active))
+    return state.replace(data=physics.simulate(data, num))
+
+
 reset_batch = jax.jit(jax.vmap(reset))
 """jitted reset over a batch of episodes (shared by the CLIs, benchmark and tests)."""
 step_batch = jax.jit(jax.vmap(step))
 """jitted step over a batch of states and actions (B, 4)."""
+settle_batch = jax.jit(jax.vmap(settle, in_axes=(0, None)))
+"""jitted settle over a batch of states (one compilation serves every duration)."""
 
 
 @dataclasses.dataclass(frozen=True)
