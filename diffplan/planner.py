@@ -50,6 +50,8 @@ computed and dropped). Measured on the XLA CPU backend of jax 0.6.2: the shipped
 for a row is bit-identical at every batch size >= 16 (and under any permutation), but differs
 by ~1e-6 below 16, which can flip a near-tied argmax of a plan. With sub-batches of >= 16 an
 episode's result does not depend on how many episodes are evaluated at once."""
+RETRY_STREAM = 0x5E7
+"""``retry_batch`` draws a move's second plan with ``fold_in(the move's plan key, RETRY_STREAM)``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,6 +159,9 @@ class PlannerState(struct.PyTreeNode):
     condition: float32 (H, W, C) the condition it was made from (zeros before the first).
     move: int32 () calls of ``plan`` so far (moves). calls: int32 () denoiser calls spent.
     num_plans: int32 () plans made.
+    fallbacks: int32 () moves whose plan gave the task's psi no move even after a second plan
+      (tasks whose psi follows the plan's marks, ``task.follows_plan``; see
+      ``diffplan.rollouts.move``).
     """
 
     key: jax.Array
@@ -166,6 +171,7 @@ class PlannerState(struct.PyTreeNode):
     move: jax.Array
     calls: jax.Array
     num_plans: jax.Array
+    fallbacks: jax.Array
 
 
 def _take(tree, idx):
@@ -233,7 +239,7 @@ class Planner(struct.PyTreeNode):
                             plan=jnp.zeros(self.plan_shape, jnp.float32),
                             condition=jnp.zeros((h, w, self.denoiser.num_cond_channels),
                                                 jnp.float32),
-                            move=zero, calls=zero, num_plans=zero)
+                            move=zero, calls=zero, num_plans=zero, fallbacks=zero)
 
     def plan(self, state: PlannerState, condition: jax.Array,
              replan: Optional[jax.Array] = None) -> tuple[jax.Array, PlannerState]:
@@ -311,6 +317,34 @@ class Planner(struct.PyTreeNode):
         else:
             plans = subset_update(need, fresh, plans, chunk)
         return plans, jax.vmap(self._advance)(states, plans, conditions, need, warm, active)
+
+    def retry_batch(self, states: PlannerState, conditions: jax.Array, need: jax.Array,
+                    chunk: Optional[int] = None) -> tuple[jax.Array, PlannerState]:
+        """A second plan of this move, from noise with a key of its own, for the episodes
+        where ``need`` (bool (B,)); the others keep theirs. It costs a full plan's calls and
+        counts as a plan, not as a move. Modes that plan once (one_shot, k_shot) never plan
+        again here: their plans are returned unchanged.
+
+        Returns (plans float32 (B, H, W, G), the next states)."""
+        self._check_condition(conditions, batched=True)
+        if self.config.mode in ("one_shot", "k_shot"):
+            return states.plan, states
+        need = jnp.asarray(need, bool)
+        chunk = max(MIN_SUB_BATCH, need.shape[0] if chunk is None else int(chunk))
+        keys = jax.vmap(lambda s: jax.random.fold_in(self._plan_key(s), RETRY_STREAM))(states)
+
+        def fresh(idx):
+            return jax.vmap(lambda k, c, t: self._sample(k, c, t, None))(
+                keys[idx], conditions[idx], states.tokens[idx])
+
+        plans = subset_update(need, fresh, states.plan, chunk)
+        n = need.astype(jnp.int32)
+        return plans, states.replace(
+            plan=plans,
+            condition=jnp.where(need[:, None, None, None], conditions.astype(jnp.float32),
+                                states.condition),
+            calls=states.calls + n * self.config.full_plan_calls,
+            num_plans=states.num_plans + n)
 
     # ------------------------------------------------------------------ internals
 

@@ -38,6 +38,8 @@ class Rollout:
       metrics).
     plans: float32 (N, T, H, W, G) the plan followed at each move, if the planner's
       config.record_plans (else None).
+    fallback_moves: int32 (N,) moves whose plan gave psi no move even after a second plan
+      (a task with ``follows_plan``; None otherwise).
     """
 
     final_state: Any
@@ -48,6 +50,7 @@ class Rollout:
     num_plans: jax.Array
     first_plan: jax.Array
     plans: Any = None
+    fallback_moves: Any = None
 
 
 def _where_rows(mask, new, old):
@@ -64,6 +67,12 @@ def move(task, planner: Planner, states, planner_states: PlannerState, active,
     ``task.psi``, step the world. Inactive episodes (active bool (B,) False) are left as they
     are. chunk / fresh_chunk: see ``Planner.plan_batch``.
 
+    A task whose psi only follows the plan's marks (``task.follows_plan`` True) also says
+    where a plan gives it no move (``task.unfollowable(state, plan) -> bool ()``): there the
+    planner plans again once (``Planner.retry_batch``; not in one_shot / k_shot), psi acts on
+    the second plan, and a move that is still unfollowable (psi's own fallback acts) is
+    counted in ``PlannerState.fallbacks``.
+
     Returns (states, planner_states, plans float32 (B, H, W, G) followed at this move)."""
     config = planner.config
     conditions = jax.vmap(task.condition)(states)
@@ -76,6 +85,13 @@ def move(task, planner: Planner, states, planner_states: PlannerState, active,
     plans, planner_states = planner.plan_batch(planner_states, conditions, active, replan,
                                                chunk=chunk, fresh_chunk=fresh_chunk)
     actions = jax.vmap(task.psi)(states, plans)
+    if getattr(task, "follows_plan", False):
+        stuck = jax.vmap(task.unfollowable)(states, plans) & active
+        plans, planner_states = planner.retry_batch(planner_states, conditions, stuck, chunk)
+        actions = jnp.where(stuck, jax.vmap(task.psi)(states, plans), actions)
+        fallback = stuck & jax.vmap(task.unfollowable)(states, plans)
+        planner_states = planner_states.replace(
+            fallbacks=planner_states.fallbacks + fallback.astype(jnp.int32))
     states = _where_rows(active, jax.vmap(task.step)(states, actions), states)
     return states, planner_states, plans
 
@@ -90,7 +106,9 @@ def _result(task, final_states, positions, planner_states: PlannerState, first_p
     positions = jnp.where((idx > steps[:, None])[..., None], final[:, None, :], positions)
     return Rollout(final_state=final_states, positions=positions, steps=steps,
                    done=jax.vmap(task.done)(final_states), denoiser_calls=planner_states.calls,
-                   num_plans=planner_states.num_plans, first_plan=first_plan, plans=plans)
+                   num_plans=planner_states.num_plans, first_plan=first_plan, plans=plans,
+                   fallback_moves=(getattr(planner_states, "fallbacks", None)
+                                   if getattr(task, "follows_plan", False) else None))
 
 
 def _start_positions(task, states, n: int):

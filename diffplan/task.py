@@ -54,3 +54,8 @@ class Task(Protocol):
     def new_information(self, old_condition: jax.Array, condition: jax.Array) -> jax.Array:
         """bool (): ``condition`` (H, W, C) shows something ``old_condition`` (the one the
         current plan was made from) did not (the "on_change" re-planning trigger)."""
+
+    # Optional: a task whose psi only follows the plan's marks sets ``follows_plan = True`` and
+    # defines ``unfollowable(state, plan) -> bool ()`` (the plan gives psi no move there); the
+    # rollout then plans again once and counts the moves psi still had to make on its own
+    # (``diffplan.rollouts.move``).

@@ -54,6 +54,7 @@ def _result(spec, args, seeds, modes, main_mode, checkpoint, train_seconds, rows
         "warm_num_steps": spec.warm_num_steps or spec.num_steps,
         "noise": "fresh" if spec.fresh_noise else "episode",
         "eta": spec.eta,
+        "psi": spec.psi,
         "replan": {mode: spec.replan_of(mode) for mode in modes if mode in MODE_REPLAN},
         "trajectories_method": METHOD_NAMES[main_mode],
         "train_seconds": train_seconds,
@@ -68,7 +69,8 @@ def _print_summary(spec, args, seeds, result) -> None:
     print(f"\n{spec.name}: {args.episodes} episodes per seed, seed(s) "
           f"{','.join(map(str, seeds))}, {spec.num_steps} denoising steps per plan (warm start: "
           f"{result['warm_num_steps']}-step schedule from step {spec.warm_start_step}), "
-          f"checkpoint {result['checkpoint']}" + (f"\n{triggers}" if triggers else ""))
+          f"checkpoint {result['checkpoint']}, psi {spec.psi}"
+          + (f"\n{triggers}" if triggers else ""))
     excluded = sum(result["excluded_training_episodes"].values())
     if excluded:
         print(f"{excluded} of {args.episodes * len(seeds)} episodes equal a training episode of "
@@ -88,7 +90,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                                warm_start_step=args.warm_start_step,
                                warm_num_steps=args.warm_num_steps,
                                fresh_noise=args.noise == "fresh", eta=args.eta,
-                               replan=args.replan)
+                               replan=args.replan, psi=args.psi)
     from diffplan.jax_cache import enable_compilation_cache
 
     enable_compilation_cache()

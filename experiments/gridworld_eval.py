@@ -19,7 +19,8 @@ import numpy as np
 from experiments.gridworld_spec import METHOD_NAMES
 from experiments.harness import (ROLLOUT_STREAM, concat_trees, format_intervals as _intervals,
                                  format_table as _table, per_seed_values, planner_keys,
-                                 rate_interval, rollout_fn, seeded_episodes)
+                                 rollout_fn, seeded_episodes)
+from experiments.intervals import rate_interval
 
 __all__ = ["ROLLOUT_STREAM", "concat_trees", "eval_episodes", "evaluate_mode", "metrics_row",
            "training_overlap", "select", "OVERLAP_SETTINGS",
@@ -29,7 +30,7 @@ __all__ = ["ROLLOUT_STREAM", "concat_trees", "eval_episodes", "evaluate_mode", "
 STREAM_MODES = ("on_the_fly", "warm_start")
 """Modes run on the slot pool (a slot starts the next episode as soon as its episode ends)."""
 PER_SEED_FIELDS = ("SR", "SR_ordered", "GD", "path_f1", "SPL", "denoiser_calls_per_episode",
-                   "seconds")
+                   "fallback_percent", "seconds")
 
 
 def eval_episodes(grid_config, n: int, seed: int, chunk: int = 1024):
@@ -141,6 +142,9 @@ def metrics_row(method, rollout, episodes, seconds, has_reference):
     row["collisions_per_episode"] = float(np.mean(rollout.final_state.collisions))
     row["denoiser_calls_per_episode"] = float(np.mean(rollout.denoiser_calls))
     row["plans_per_episode"] = float(np.mean(rollout.num_plans))
+    if getattr(rollout, "fallback_moves", None) is not None:  # psi "follow"
+        row["fallback_percent"] = (100.0 * float(np.sum(rollout.fallback_moves))
+                                   / max(int(np.sum(rollout.steps)), 1))
     row["seconds"] = float(seconds)
     return row
 
@@ -176,7 +180,7 @@ TABLE_COLUMNS = (("method", "{:<22}", "method"), ("SR", "{:>7.2f}", "SR"),
                  ("path_f1", "{:>7.2f}", "F1"), ("SPL", "{:>6.3f}", "SPL"),
                  ("plan_f1", "{:>7.2f}", "planF1"),
                  ("denoiser_calls_per_episode", "{:>8.1f}", "calls"),
-                 ("seconds", "{:>8.1f}", "sec"))
+                 ("fallback_percent", "{:>6.2f}", "fb%"), ("seconds", "{:>8.1f}", "sec"))
 
 
 def format_table(rows) -> str:

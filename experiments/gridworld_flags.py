@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from envs.gridworld.task import PSI_KINDS
 from experiments import cli, harness
 from experiments.gridworld_spec import (LANGUAGE_CHOICES, MODE_REPLAN, TRAINING_NAME,
                                         ExperimentSpec)
@@ -53,6 +54,13 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "('always', the paper) or only when new cells were seen or the plan's "
                         "sub-goal was reached ('on_change'); default: each row's own, "
                         + ", ".join(f"{m} {r}" for m, r in MODE_REPLAN.items()))
+    p.add_argument("--psi", choices=PSI_KINDS, default=spec.psi,
+                   help="how a plan becomes a move: 'search' (a Dijkstra search toward the "
+                        "plan's sub-goal over the cells not known to be obstacles, the plan's "
+                        "path cells cheaper) or 'follow' (the paper's: step onto the neighbour "
+                        "the plan marks most strongly as path; where none is marked plan again "
+                        "once, then step greedily toward the sub-goal; the table's fb%% column "
+                        f"is the share of such fallback moves) (default {spec.psi})")
     p.add_argument("--language", choices=tuple(LANGUAGE_CHOICES), default="canonical",
                    help="instruction phrasing of the episodes: 'canonical' (the paper's, "
                         "default), 'paraphrased' (the training paraphrases), 'unseen' (held-out "

@@ -74,6 +74,9 @@ class ExperimentSpec:
     main_mode: str = "on_the_fly"
     # How the evaluation episodes' instructions are phrased (diffplan.language.LANGUAGES).
     language: str = "canonical"
+    # psi (envs.gridworld.task.PSI_KINDS): "search" (Dijkstra toward the sub-goal, the plan's
+    # path cheaper) or "follow" (the paper's: the neighbour the plan marks most strongly).
+    psi: str = "search"
 
     @property
     def name(self) -> str:
@@ -91,7 +94,8 @@ class ExperimentSpec:
         from envs.gridworld.config import make_config
         from envs.gridworld.task import NUM_GEN_CHANNELS, GridTask
         return GridTask(make_config(self.setting), use_goal_channel=self.goal_channel,
-                        num_gen_channels=num_gen_channels or NUM_GEN_CHANNELS)
+                        num_gen_channels=num_gen_channels or NUM_GEN_CHANNELS,
+                        psi_kind=self.psi)
 
     def model_config(self, size: str = "default"):
         from envs.gridworld import grammar

@@ -14,8 +14,9 @@ import jax
 import numpy as np
 
 from envs.kuka.env import SETTLE_SECONDS
-from experiments.harness import (clustered_interval, format_table as _table, per_seed_values,
-                                 planner_keys, rollout_fn, seeded_episodes)
+from experiments.harness import (format_table as _table, per_seed_values, planner_keys,
+                                 rollout_fn, seeded_episodes)
+from experiments.intervals import clustered_interval
 
 
 def generate_episodes(spec, n: int, seed: int, batch: int):
@@ -174,7 +175,7 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
 
 def add_intervals(row: dict, counts, per_seed: dict | None = None) -> None:
     """Adds SR_ci95 (the 95% interval of the pooled constraint success rate over episodes, the
-    constraints of one episode one cluster: harness.clustered_interval of counts, the
+    constraints of one episode one cluster: intervals.clustered_interval of counts, the
     (successes, constraints) of :func:`episode_counts`) and, given the per-seed rows, per-seed
     SR and SPL to a row."""
     row["SR_ci95"] = clustered_interval(*counts)

@@ -7,7 +7,8 @@ instead ("setting": "p_mo2g", as the shipped sweep files do); without either the
 gridworld/p_mo2g. The keys every task takes: task, checkpoint, modes (one planning mode),
 num_steps, seed, episodes, batch_size. The grid world's: setting, eta, warm_start_step,
 warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change"; missing: the
-mode's own, as in the experiment CLIs), language. The Kuka world's: multi (several instructed
+mode's own, as in the experiment CLIs), language, psi ("search" | "follow", the CLIs' --psi).
+The Kuka world's: multi (several instructed
 relations: the multi-constraint column), language, carry ("path" | "arc"). language is the
 instructions' phrasing in both worlds: "canonical" | "paraphrased" | "unseen" (held-out
 phrasings training never saw).
@@ -17,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
+from envs.gridworld.task import PSI_KINDS
 from experiments import gridworld_spec as gs, kuka_spec as ks
 from experiments.harness import DEFAULT_EVAL_SEED
 
@@ -26,7 +28,8 @@ GRID_DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly",
                  "warm_start_step": _SPEC.warm_start_step,
                  "warm_num_steps": _SPEC.warm_num_steps or _SPEC.num_steps,
                  "noise": "fresh" if _SPEC.fresh_noise else "episode", "replan": None,
-                 "language": "canonical", "seed": DEFAULT_EVAL_SEED, "episodes": 1000, "batch_size": _SPEC.eval_batch}
+                 "language": "canonical", "psi": _SPEC.psi, "seed": DEFAULT_EVAL_SEED,
+                 "episodes": 1000, "batch_size": _SPEC.eval_batch}
 """The grid-world CLIs' defaults (replan None: the mode's own trigger, MODE_REPLAN)."""
 KUKA_DEFAULTS = {"checkpoint": None, "modes": ks.MAIN_MODE, "num_steps": ks.NUM_STEPS,
                  "multi": False, "language": "canonical", "carry": "path",
@@ -40,9 +43,10 @@ KEYS = ("task",) + tuple(dict.fromkeys(itertools.chain(GRID_DEFAULTS, KUKA_DEFAU
 TYPES = {"task": str, "setting": str, "checkpoint": str, "modes": str, "num_steps": int,
          "eta": float, "warm_start_step": int, "warm_num_steps": int, "noise": str,
          "replan": str, "seed": int, "episodes": int, "batch_size": int, "multi": bool,
-         "language": str, "carry": str}
+         "language": str, "carry": str, "psi": str}
 CHOICES = {"setting": tuple(gs.SPECS), "noise": ("fresh", "episode"),
-           "replan": ("always", "on_change"), "language": ks.LANGUAGES, "carry": ks.CARRIES}
+           "replan": ("always", "on_change"), "language": ks.LANGUAGES, "carry": ks.CARRIES,
+           "psi": PSI_KINDS}
 MINIMUMS = {"episodes": 1, "batch_size": 1, "seed": 0, "num_steps": 1, "warm_num_steps": 1,
             "warm_start_step": 0}
 
@@ -140,7 +144,7 @@ def spec_of(config: dict) -> gs.ExperimentSpec:
         gs.SPECS[config["setting"]], num_steps=config["num_steps"],
         warm_start_step=config["warm_start_step"], warm_num_steps=config["warm_num_steps"],
         fresh_noise=config["noise"] == "fresh", eta=config["eta"], replan=config["replan"],
-        language=config["language"])
+        language=config["language"], psi=config["psi"])
 
 
 def planner_config(config: dict):

@@ -7,10 +7,11 @@ import os
 import numpy as np
 
 CSV_FIELDS = ("task", "setting", "modes", "num_steps", "eta", "warm_num_steps",
-              "warm_start_step", "noise", "replan", "multi", "language", "carry", "seed",
-              "episodes", "checkpoint", "SR", "SR_ordered", "SR_diffuser", "GD",
-              "path_precision", "path_recall", "path_f1", "denoiser_calls_per_episode",
-              "seconds", "compile_seconds", "wall_seconds", "devices")
+              "warm_start_step", "noise", "replan", "multi", "language", "carry", "psi",
+              "seed", "episodes", "checkpoint", "SR", "SR_ordered", "SR_diffuser", "GD",
+              "path_precision", "path_recall", "path_f1", "SPL", "fallback_percent",
+              "settle_changed", "denoiser_calls_per_episode", "seconds", "compile_seconds",
+              "wall_seconds", "devices")
 
 
 def write_csv(path: str, rows) -> None:
@@ -47,7 +48,8 @@ def label(row) -> str:
     return (f"{row['modes']}{extra}" + (" on_change" if row["replan"] == "on_change" else "")
             + (f" eta{row['eta']:g}" if row["eta"] else "")
             + (f" {row['language']}" if row.get("language", "canonical") != "canonical"
-               else ""))
+               else "")
+            + (" follow" if row.get("psi") == "follow" else ""))
 
 
 SECOND_PANELS = (("path_f1", "path F1 (%)"), ("SR_diffuser", "SR, Diffuser's check (%)"))
@@ -104,12 +106,13 @@ def write_figures(out_dir: str, rows) -> list[str]:
 def format_rows(rows) -> str:
     """The printed table: one line per configuration (a rate a world lacks shows nan)."""
     head = (f"{'#':>3} {'configuration':<34} {'seed':>5} {'eps':>5} {'SR':>7} {'SR_ord':>7} "
-            f"{'F1':>6} {'calls':>7} {'sec':>7} {'compile':>7}")
+            f"{'F1':>6} {'SPL':>6} {'calls':>7} {'sec':>7} {'compile':>7}")
     lines = [head, "-" * len(head)]
     nan = float("nan")
     for i, r in enumerate(rows):
         lines.append(f"{i + 1:>3} {label(r):<34} {r['seed']:>5} {r['episodes']:>5} "
                      f"{r['SR']:>7.2f} {r.get('SR_ordered', nan):>7.2f} "
-                     f"{r.get('path_f1', nan):>6.1f} {r['denoiser_calls_per_episode']:>7.1f} "
+                     f"{r.get('path_f1', nan):>6.1f} {r.get('SPL', nan):>6.3f} "
+                     f"{r['denoiser_calls_per_episode']:>7.1f} "
                      f"{r['seconds']:>7.1f} {r['compile_seconds']:>7.1f}")
     return "\n".join(lines)

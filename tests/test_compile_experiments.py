@@ -231,3 +231,17 @@ def test_ablation_runs_every_row_on_a_tiny_configuration(tiny_run, tmp_path):
     denoiser, meta = harness.load_model(str(tmp_path / "compile_gridworld_class_id_no_goal"))
     assert denoiser.model_config.grid_repr == "class_id"
     assert meta["extra"]["goal_channel"] is False
+
+
+def test_psi_follow_reports_its_fallback_moves(tiny_run):
+    """--psi follow: the paper's psi; every planner row says what share of its moves were
+    fallback moves (in the JSON and per seed), and the JSON records the psi."""
+    out, _ = tiny_run
+    result = gridworld_cli.main("p_mo2g", [
+        "--checkpoint", str(out / "train"), "--episodes", "3", "--seeds", "7,8",
+        "--batch-size", "3", "--num-steps", "2", "--modes", "on_the_fly", "--psi", "follow",
+        "--no-progress"])
+    assert result["psi"] == "follow"
+    row = result["rows"][0]
+    assert 0.0 <= row["fallback_percent"] <= 100.0
+    assert set(row["per_seed"]) == {"7", "8"} and "fallback_percent" in row["per_seed"]["7"]

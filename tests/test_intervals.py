@@ -1,4 +1,4 @@
-"""The clustered 95% interval (harness.clustered_interval): the constraints of one Kuka episode
+"""The clustered 95% interval (intervals.clustered_interval): the constraints of one Kuka episode
 are one cluster, not independent trials."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from experiments import harness
+from experiments import intervals
 
 
 def _oracle(successes, trials):
@@ -35,12 +35,12 @@ clusters = st.lists(st.tuples(st.integers(0, 3), st.integers(1, 3)).map(
 @given(clusters)
 def test_clustered_interval_matches_oracle_and_contains_the_rate(pairs):
     s, t = map(np.array, zip(*pairs))
-    lo, hi = harness.clustered_interval(s, t)
+    lo, hi = intervals.clustered_interval(s, t)
     np.testing.assert_allclose([lo, hi], _oracle(s, t), atol=1e-9)
     rate = 100 * s.sum() / t.sum()
     assert lo - 1e-9 <= rate <= hi + 1e-9
     # Never narrower than counting every constraint as an independent trial.
-    wlo, whi = harness.wilson_interval(s.sum(), t.sum())
+    wlo, whi = intervals.wilson_interval(s.sum(), t.sum())
     assert lo <= wlo + 1e-9 and hi >= whi - 1e-9
 
 
@@ -48,21 +48,21 @@ def test_clustered_interval_matches_oracle_and_contains_the_rate(pairs):
 @given(st.lists(st.booleans(), min_size=1, max_size=50))
 def test_clusters_of_one_trial_give_wilsons_interval(outcomes):
     s = np.array(outcomes, int)
-    np.testing.assert_allclose(harness.clustered_interval(s, np.ones_like(s)),
-                               harness.wilson_interval(s.sum(), len(s)), atol=1e-9)
+    np.testing.assert_allclose(intervals.clustered_interval(s, np.ones_like(s)),
+                               intervals.wilson_interval(s.sum(), len(s)), atol=1e-9)
 
 
 def test_perfect_episodes_count_once_each():
     # 70 episodes of 3 constraints, all held: the interval of 70 trials, not of 210.
-    lo, hi = harness.clustered_interval(np.full(70, 3), np.full(70, 3))
-    assert [lo, hi] == pytest.approx(harness.wilson_interval(70, 70))
-    assert lo < harness.wilson_interval(210, 210)[0]
+    lo, hi = intervals.clustered_interval(np.full(70, 3), np.full(70, 3))
+    assert [lo, hi] == pytest.approx(intervals.wilson_interval(70, 70))
+    assert lo < intervals.wilson_interval(210, 210)[0]
     # Whole episodes failing together widen the interval beyond the independent one.
     s = np.array([3] * 60 + [0] * 10)
-    assert harness.clustered_interval(s, np.full(70, 3))[0] < harness.wilson_interval(180, 210)[0]
+    assert intervals.clustered_interval(s, np.full(70, 3))[0] < intervals.wilson_interval(180, 210)[0]
 
 
 @pytest.mark.parametrize("s, t", [([2], [1]), ([-1], [2]), ([1, 1], [2])])
 def test_clustered_interval_refuses_impossible_counts(s, t):
     with pytest.raises(ValueError, match="successes"):
-        harness.clustered_interval(s, t)
+        intervals.clustered_interval(s, t)

@@ -11,7 +11,7 @@ import pytest
 
 import kuka_fixtures as kf
 from envs.kuka import grammar, render
-from experiments import harness, kuka_cli, kuka_spec
+from experiments import intervals, kuka_cli, kuka_spec
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 
@@ -85,10 +85,10 @@ def test_intervals_over_seeds_count_episodes_not_constraints(capsys):
         "--policy", "expert", "--episodes", "2", "--seeds", "5,6", "--batch-size", str(kf.BATCH),
         "--no-progress"])
     main, single, multi = result["rows"]
-    assert single["SR_ci95"] == pytest.approx(harness.wilson_interval(4, 4))
+    assert single["SR_ci95"] == pytest.approx(intervals.wilson_interval(4, 4))
     assert multi["constraints"] == 12 and multi["SR_ci95"] == pytest.approx(
-        harness.wilson_interval(4, 4))
-    assert main["SR_ci95"] == pytest.approx(harness.wilson_interval(8, 8))
+        intervals.wilson_interval(4, 4))
+    assert main["SR_ci95"] == pytest.approx(intervals.wilson_interval(8, 8))
     assert set(multi["per_seed"]) == {"5", "6"} and multi["per_seed"]["6"]["SPL"] == 1.0
     assert "95% interval" in capsys.readouterr().out
 

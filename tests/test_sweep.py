@@ -74,6 +74,8 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     ({"task": "kuka/stacking", "language": "french"}, "language must be one of"),
     ({"setting": "p_mo2g", "language": "both"}, "language must be one of"),
     ({"task": "kuka/stacking", "num_steps": 500}, "exceeds its schedule"),
+    ({"setting": "p_mo2g", "psi": "teleport"}, "psi must be one of"),
+    ({"task": "kuka/stacking", "psi": "follow"}, "do not apply to kuka/stacking"),
 ])
 def test_bad_configurations_are_refused_in_one_line(tmp_path, capsys, config, message):
     path = tmp_path / "bad.json"
@@ -250,3 +252,18 @@ def test_grid_phrasings_share_one_compiled_evaluation(tiny_checkpoint):
     assert [r["language"] for r in rows] == ["canonical", "unseen"]
     assert [r["method"] for r in rows] == ["one-shot", "one-shot, unseen"]
     assert rows[0]["compile_seconds"] > 0 and rows[1]["compile_seconds"] == 0
+
+
+def test_psi_is_a_grid_sweep_key(tiny_checkpoint, tmp_path):
+    """psi "follow" runs the paper's psi: its row reports the share of fallback moves, and the
+    CSV carries psi, SPL and that share."""
+    result = sweep.main(["--checkpoint", tiny_checkpoint, "--modes", "on_the_fly", "--num-steps",
+                         "2", "--episodes", "4", "--batch-size", "4", "--seed", "5",
+                         "--psi", "search,follow", "--csv", str(tmp_path / "s.csv"),
+                         "--no-progress"])
+    search, follow = result["rows"]
+    assert (search["psi"], follow["psi"]) == ("search", "follow")
+    assert "fallback_percent" not in search and 0 <= follow["fallback_percent"] <= 100
+    assert 0 <= follow["SPL"] <= 1
+    header = (tmp_path / "s.csv").read_text().splitlines()[0].split(",")
+    assert {"psi", "SPL", "fallback_percent"} <= set(header)

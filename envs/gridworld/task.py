@@ -22,6 +22,15 @@ episode on the target before it has done what the instruction asks first. A Dijk
 computed by Bellman-Ford relaxation in JAX. psi never moves into a known obstacle or off the
 grid; as the field of view is at least one cell around the agent, it never collides.
 
+``GridTask(psi_kind="follow")`` is the paper's psi instead (:func:`psi_follow`): the move onto
+the neighbouring legal cell (on the grid, not a known obstacle) that the plan marks most
+strongly as path (path value > 0; cells already visited only when no other neighbour is
+marked), with no search over the map. Where no neighbour is marked the rollout plans again
+once (``diffplan.rollouts.move``), and if the second plan marks none either, the agent steps
+greedily toward the cell the plan heads for (the legal neighbour nearest to it in moves,
+ignoring obstacles: no search); such fallback moves are counted. As in the search, while the
+sub-goal is not the goal estimate the goal estimate's cell is not a candidate.
+
 The training examples of the denoiser (what each channel's target is) live in
 ``envs.gridworld.training``.
 """
@@ -92,6 +101,54 @@ def goal_estimate(state: env.State, plan, use_goal_channel: bool = True):
     return goal_cell(plan, known_obstacle)
 
 
+PSI_KINDS = ("search", "follow")
+"""``GridTask.psi_kind``: Dijkstra toward the sub-goal over path-cheapened cells (:func:`psi`),
+or the paper's neighbour-following psi (:func:`psi_follow`)."""
+
+
+def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True):
+    """What psi_follow weighs: (cells int32 (4, 2) the neighbours N, E, S, W, legal bool (4,)
+    on the grid and not known obstacles (nor the goal estimate's cell while the sub-goal is
+    elsewhere), score float32 (4,) the path value of the candidates (-inf elsewhere): the
+    marked (path > 0) unvisited neighbours, or the marked visited ones when there are none,
+    heading int32 (2,) the cell the plan heads for)."""
+    h, w = state.grid.shape
+    cells, inside = bfs.neighbours(state.agent, (h, w))
+    r = jnp.clip(cells[:, 0], 0, h - 1)
+    c = jnp.clip(cells[:, 1], 0, w - 1)
+    known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+    legal = inside & ~known_obstacle[r, c]
+    heading = goal_estimate(state, plan, use_goal_channel)
+    if use_goal_channel and plan.shape[-1] >= 3:
+        goal = goal_cell(plan, known_obstacle)
+        avoid = jnp.all(cells == goal, axis=-1) & jnp.any(goal != heading)
+        legal = legal & ~avoid
+    path = plan[..., 0][r, c]
+    marked = legal & (path > 0)
+    fresh = marked & ~state.visited[r, c]
+    use = jnp.where(fresh.any(), fresh, marked)
+    return cells, legal, jnp.where(use, path, -jnp.inf), heading
+
+
+def unfollowable(state: env.State, plan, use_goal_channel: bool = True):
+    """bool (): the plan marks no legal neighbour of the agent as path (psi_follow falls
+    back)."""
+    _, _, score, _ = _follow_candidates(state, plan, use_goal_channel)
+    return ~jnp.any(jnp.isfinite(score))
+
+
+def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
+    """The paper's psi: the move (int32 () in 0..3) onto the legal neighbour the plan marks
+    most strongly as path (ties to the lowest move index N, E, S, W); where none is marked, the
+    legal neighbour nearest (in moves, obstacles ignored) to the cell the plan heads for (move
+    0 if no neighbour is legal). See the module docstring."""
+    cells, legal, score, heading = _follow_candidates(state, plan, use_goal_channel)
+    follow = jnp.argmax(score)
+    distance = jnp.abs(cells - heading[None, :]).sum(-1)
+    greedy = jnp.argmin(jnp.where(legal, distance, jnp.iinfo(jnp.int32).max))
+    return jnp.where(jnp.isfinite(score[follow]), follow, greedy).astype(jnp.int32)
+
+
 def _argmax_cell(values, excluded):
     """int32 (2,): the argmax cell of values float32 (H, W) among cells not excluded."""
     flat = jnp.argmax(jnp.where(excluded, -jnp.inf, values).ravel())
@@ -125,6 +182,8 @@ class GridTask:
     config: the world's GridConfig. path_weight: psi's preference for the plan's path cells.
     use_goal_channel: False for models trained without goal channels (the ablation "- g").
     num_gen_channels: G of the denoiser that plans it (3, or 2 for models without a sub-goal).
+    psi_kind: "search" (:func:`psi`) or "follow" (the paper's psi, :func:`psi_follow`; the
+      rollout then plans again where the plan marks no neighbour, ``follows_plan``).
     """
 
     config: GridConfig
@@ -141,6 +200,7 @@ class GridTask:
 
     num_cond_channels: int = NUM_COND_CHANNELS
     num_gen_channels: int = NUM_GEN_CHANNELS
+    psi_kind: str = "search"
 
     def __post_init__(self):
         if self.num_cond_channels != NUM_COND_CHANNELS:
@@ -151,6 +211,13 @@ class GridTask:
                              f"goal: models without a sub-goal), got {self.num_gen_channels}")
         if not self.path_weight >= 0:
             raise ValueError(f"path_weight must be >= 0, got {self.path_weight}")
+        if self.psi_kind not in PSI_KINDS:
+            raise ValueError(f"psi_kind must be one of {PSI_KINDS}, got {self.psi_kind!r}")
+
+    @property
+    def follows_plan(self) -> bool:
+        """psi only follows the plan's marks (the rollout plans again where it cannot)."""
+        return self.psi_kind == "follow"
 
     @property
     def max_steps(self) -> int:
@@ -166,7 +233,13 @@ class GridTask:
         return episode.tokens
 
     def psi(self, state: env.State, plan):
+        if self.follows_plan:
+            return psi_follow(state, plan, self.use_goal_channel)
         return psi(state, plan, self.path_weight, self.use_goal_channel)
+
+    def unfollowable(self, state: env.State, plan):
+        """bool (): psi_follow would fall back on this plan (used when follows_plan)."""
+        return unfollowable(state, plan, self.use_goal_channel)
 
     def step(self, state: env.State, action):
         return env.step(state, action, self.config)
