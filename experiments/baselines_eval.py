@@ -10,7 +10,8 @@ in the grid world through ``envs.gridworld.baselines.POLICY_WORLD``.
 experiments call for their ``--baselines`` rows. The shipped checkpoints are
 ``checkpoints/baselines/{bc,cql,dd}`` (``experiments.train_baselines`` makes them).
 ``reference_rows`` measures the reference agents (``envs.gridworld.agents``: the oracle, which
-knows the whole map, and the searcher, a heuristic of what the agent has seen) the same way.
+knows the whole map, and the searcher, a heuristic of what the agent has seen) the same way;
+every grid-world table carries their rows unless ``--no-reference-agents``.
 """
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ from envs.gridworld.config import SETTINGS, make_config
 from envs.gridworld.task import GridTask
 from experiments.gridworld_eval import (eval_episodes, format_intervals, format_table,
                                         metrics_row, pooled_row)
+from experiments.gridworld_flags import add_reference_agents_flag
 from experiments.harness import (CHECKPOINT_ROOT, DEFAULT_EVAL_SEED, EVALUATION_SEEDS,
                                  ROLLOUT_STREAM, VALIDATION_SEED, concat_trees, fail,
                                  parse_seeds)
@@ -173,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"conditional model alone; default {DEFAULT_DD_GUIDANCE})")
     p.add_argument("--json", metavar="PATH",
                    help="write the rows (contract 2; each row names its setting)")
+    add_reference_agents_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
 
@@ -208,6 +211,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                      not args.no_progress, checkpoint_root=args.checkpoint_root,
                                      methods=methods, dd_num_steps=args.dd_num_steps,
                                      dd_guidance=args.dd_guidance)
+        if not args.no_reference_agents:
+            setting_rows += reference_rows(setting, seeds, args.episodes, args.batch_size,
+                                           not args.no_progress)
         print(f"\n{setting}: {args.episodes} episodes per seed, seed(s) "
               f"{','.join(map(str, seeds))}")
         print(format_table(setting_rows))
