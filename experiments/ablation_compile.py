@@ -5,8 +5,10 @@ Rows, as in the paper:
   + grid repr     learned cell embeddings shared with the instruction words, no g, one-shot
   + g             + the goal-estimate channel, one-shot
   + on the fly    + re-planning before every move (the main model, Algorithm 1)
-Models without g are followed by psi towards the far end of their predicted path (the path cell
-farthest along the unvisited path cells connected to the agent: envs.gridworld.task.path_end_cell).
+then the reference agents (oracle, searcher) on the same episodes, unless
+--no-reference-agents. Models without g are followed by psi towards the far end of their
+predicted path (the path cell farthest along the unvisited path cells connected to the agent:
+envs.gridworld.task.path_end_cell).
 
 `python -m experiments.ablation_compile --help`. The "+ g" and "+ on the fly" rows use the main
 denoiser (checkpoints/compile_gridworld); the two others are trained by `--train` into
@@ -21,6 +23,7 @@ import os
 
 from diffplan.jax_cache import enable_compilation_cache
 from experiments import cli, gridworld_eval as ge, harness
+from experiments.gridworld_flags import add_reference_agents_flag
 from experiments.gridworld_spec import ExperimentSpec, SPECS, load_checked, train_setting
 from experiments.recipes import MODEL_SIZES
 
@@ -53,6 +56,7 @@ def build_parser():
     p.add_argument("--batch-size", type=int, default=250, help="episodes per jitted call")
     p.add_argument("--num-steps", type=int, default=ExperimentSpec("p_mo2g").num_steps,
                    help="denoising steps per plan")
+    add_reference_agents_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
 
@@ -106,6 +110,12 @@ def main(argv=None):
                                  base.grid_config().has_reference)
             row["setting"] = setting
             rows.append(row)
+        if not args.no_reference_agents:
+            from experiments.baselines_eval import reference_rows
+
+            for row in reference_rows(setting, (args.seed,), args.episodes, args.batch_size,
+                                      progress, episodes_by_seed={args.seed: episodes}):
+                rows.append({**row, "method": f"{setting} {row['method']}", "setting": setting})
     result = {"experiment": "ablation_compile", "episodes": args.episodes, "seed": args.seed,
               "rows": rows}
     print(ge.format_table(rows))

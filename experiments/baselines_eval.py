@@ -9,6 +9,9 @@ in the grid world through ``envs.gridworld.baselines.POLICY_WORLD``.
 ``baseline_rows(setting, seeds, episodes, batch_size, progress)`` is what the grid-world
 experiments call for their ``--baselines`` rows. The shipped checkpoints are
 ``checkpoints/baselines/{bc,cql,dd}`` (``experiments.train_baselines`` makes them).
+``reference_rows`` measures the reference agents (``envs.gridworld.agents``: the oracle, which
+knows the whole map, and the searcher, a heuristic of what the agent has seen) the same way;
+every grid-world table carries their rows unless ``--no-reference-agents``.
 """
 from __future__ import annotations
 
@@ -23,13 +26,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffplan.baselines.policies import BASELINES, load_policy
+from diffplan.baselines.policies import BASELINES, LoadedPolicy, load_policy
 from diffplan.baselines.rollout import policy_rollout
+from envs.gridworld.agents import REFERENCE_AGENTS, REFERENCE_POLICIES
 from envs.gridworld.baselines import POLICY_WORLD
 from envs.gridworld.config import SETTINGS, make_config
 from envs.gridworld.task import GridTask
-from experiments.gridworld_eval import (PER_SEED_FIELDS, add_intervals, eval_episodes,
-                                        format_intervals, format_table, metrics_row)
+from experiments.gridworld_eval import (eval_episodes, format_intervals, format_table,
+                                        metrics_row, pooled_row)
+from experiments.gridworld_flags import add_reference_agents_flag
 from experiments.harness import (CHECKPOINT_ROOT, DEFAULT_EVAL_SEED, EVALUATION_SEEDS,
                                  ROLLOUT_STREAM, VALIDATION_SEED, concat_trees, fail,
                                  parse_seeds)
@@ -41,12 +46,12 @@ DEFAULT_DD_GUIDANCE = 1.0
 
 
 @functools.lru_cache(maxsize=None)
-def _runner(task, act_fn, calls_per_move: int, plan_channels):
+def _runner(task, act_fn, calls_per_move: int, plan_channels, observe):
     """jitted (params, keys, episodes) -> Rollout of one policy (cached: one compilation per
     task and architecture)."""
     return jax.jit(lambda params, keys, episodes: policy_rollout(
         task, act_fn, params, keys, episodes, calls_per_move=calls_per_move,
-        plan_channels=plan_channels))
+        plan_channels=plan_channels, observe=observe))
 
 
 def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress: bool = True,
@@ -57,7 +62,8 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
     from tqdm import tqdm
 
     n = int(np.shape(episodes.tokens)[0])
-    run = _runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels)
+    run = _runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels,
+                  policy.observe)
     root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
     per_call = min(n, batch_size)
     outs = []
@@ -78,12 +84,40 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
     return concat_trees(outs), time.time() - start
 
 
-def _row(policy, rollout, episodes, seconds, has_reference):
-    row = metrics_row(policy.method, rollout, episodes, seconds, has_reference)
-    if policy.plan_channels is None:  # no plan: the plan metrics would be meaningless zeros
-        for key in PLAN_FIELDS:
-            row.pop(key)
-    return row
+def _row_fn(policy):
+    """pooled_row's row_fn for a policy: metrics_row without the plan metrics of a policy that
+    makes no plan (they would be meaningless zeros)."""
+    def row_fn(method, rollout, episodes, seconds, has_reference):
+        row = metrics_row(method, rollout, episodes, seconds, has_reference)
+        if policy.plan_channels is None:
+            for key in PLAN_FIELDS:
+                row.pop(key)
+        return row
+
+    return row_fn
+
+
+def policy_rows(policies: Sequence[LoadedPolicy], setting: str, seeds: tuple[int, ...],
+                episodes: int, batch_size: int, progress: bool, *,
+                episodes_by_seed: dict | None = None) -> list[dict]:
+    """One metrics row per policy (its ``method``) on ``episodes`` evaluation episodes of each
+    seed (pooled; with several seeds also SR_ci95 and per_seed values, as the grid-world
+    experiments write them; ``gridworld_eval.pooled_row``). episodes_by_seed: {seed: Episode
+    batch} already generated with eval_episodes (default: generated here)."""
+    grid_config = make_config(setting)
+    task = GridTask(grid_config)
+    per_seed = {seed: (episodes_by_seed or {}).get(seed) for seed in seeds}
+    per_seed = {seed: eval_episodes(grid_config, episodes, seed) if eps is None else eps
+                for seed, eps in per_seed.items()}
+    rows = []
+    for policy in policies:
+        outs = {seed: evaluate_policy(policy, task, eps, seed, batch_size, progress,
+                                      f"{setting} {policy.method} (seed {seed})")
+                for seed, eps in per_seed.items()}
+        row, _ = pooled_row(policy.method, outs, per_seed, grid_config.has_reference,
+                            _row_fn(policy))
+        rows.append(row)
+    return rows
 
 
 def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_size: int,
@@ -92,38 +126,23 @@ def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_siz
                   dd_num_steps: int = DEFAULT_DD_NUM_STEPS,
                   dd_guidance: float = DEFAULT_DD_GUIDANCE,
                   episodes_by_seed: dict | None = None) -> list[dict]:
-    """One metrics row per baseline ("BC", "CQL", "DD-style") on ``episodes`` evaluation
-    episodes of each seed (pooled; with several seeds also SR_ci95 and per_seed values, as
-    the grid-world experiments write them), from the shipped checkpoints under checkpoint_root
-    (default checkpoints/baselines). episodes_by_seed: {seed: Episode batch} already generated
-    with eval_episodes (default: generated here). Raises FileNotFoundError
-    when a checkpoint is missing."""
+    """:func:`policy_rows` of the baselines ("BC", "CQL", "DD-style"; methods among
+    BASELINES, default all) from the shipped checkpoints under checkpoint_root (default
+    checkpoints/baselines). Raises FileNotFoundError when a checkpoint is missing."""
     root = CHECKPOINT_DIR if checkpoint_root is None else checkpoint_root
-    grid_config = make_config(setting)
-    task = GridTask(grid_config)
-    has_reference = grid_config.has_reference
-    per_seed = {seed: (episodes_by_seed or {}).get(seed) for seed in seeds}
-    per_seed = {seed: eval_episodes(grid_config, episodes, seed) if eps is None else eps
-                for seed, eps in per_seed.items()}
-    pooled = concat_trees(list(per_seed.values()))
-    rows = []
-    for name in (BASELINES if methods is None else methods):
-        policy = load_policy(name, os.path.join(root, name), POLICY_WORLD,
-                             dd_num_steps=dd_num_steps, dd_guidance=dd_guidance)
-        outs = [evaluate_policy(policy, task, eps, seed, batch_size, progress,
-                                f"{setting} {policy.method} (seed {seed})")
-                for seed, eps in per_seed.items()]
-        rollout = concat_trees([r for r, _ in outs])
-        row = _row(policy, rollout, pooled, sum(t for _, t in outs), has_reference)
-        if len(seeds) > 1:
-            add_intervals(row, rollout, pooled, has_reference)
-            row["per_seed"] = {}
-            for (seed, eps), (r, t) in zip(per_seed.items(), outs):
-                single = _row(policy, r, eps, t, has_reference)
-                row["per_seed"][str(seed)] = {k: single[k] for k in PER_SEED_FIELDS
-                                              if k in single}
-        rows.append(row)
-    return rows
+    policies = [load_policy(name, os.path.join(root, name), POLICY_WORLD,
+                            dd_num_steps=dd_num_steps, dd_guidance=dd_guidance)
+                for name in (BASELINES if methods is None else methods)]
+    return policy_rows(policies, setting, seeds, episodes, batch_size, progress,
+                       episodes_by_seed=episodes_by_seed)
+
+
+def reference_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_size: int,
+                   progress: bool, *, episodes_by_seed: dict | None = None) -> list[dict]:
+    """:func:`policy_rows` of the reference agents ("oracle", "searcher":
+    envs.gridworld.agents), which bound what a planner can do; no checkpoint, no network."""
+    return policy_rows([REFERENCE_POLICIES[name] for name in REFERENCE_AGENTS], setting, seeds,
+                       episodes, batch_size, progress, episodes_by_seed=episodes_by_seed)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -156,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"conditional model alone; default {DEFAULT_DD_GUIDANCE})")
     p.add_argument("--json", metavar="PATH",
                    help="write the rows (contract 2; each row names its setting)")
+    add_reference_agents_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
 
@@ -191,6 +211,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                      not args.no_progress, checkpoint_root=args.checkpoint_root,
                                      methods=methods, dd_num_steps=args.dd_num_steps,
                                      dd_guidance=args.dd_guidance)
+        if not args.no_reference_agents:
+            setting_rows += reference_rows(setting, seeds, args.episodes, args.batch_size,
+                                           not args.no_progress)
         print(f"\n{setting}: {args.episodes} episodes per seed, seed(s) "
               f"{','.join(map(str, seeds))}")
         print(format_table(setting_rows))

@@ -80,6 +80,27 @@ def _print_summary(spec, args, seeds, result) -> None:
         print(ge.format_intervals(result["rows"], seeds))
 
 
+def _policy_rows(setting, seeds, args, progress, episodes_by_seed, language) -> list[dict]:
+    """The rows of --baselines and, unless --no-reference-agents, of the reference agents on
+    the episodes of one phrasing, their methods naming it."""
+    from experiments.baselines_eval import baseline_rows, reference_rows
+
+    extra = []
+    if args.baselines:
+        try:
+            extra += baseline_rows(setting, seeds, args.episodes, args.batch_size, progress,
+                                   methods=args.baselines, episodes_by_seed=episodes_by_seed)
+        except (FileNotFoundError, ValueError) as e:
+            harness.fail(f"cannot evaluate the baselines: {e}")
+    if not args.no_reference_agents:
+        extra += reference_rows(setting, seeds, args.episodes, args.batch_size, progress,
+                                episodes_by_seed=episodes_by_seed)
+    for row in extra:
+        row["method"] = method_name(row["method"], language)
+        row["language"] = language
+    return extra
+
+
 def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     spec = SPECS[setting]
     parser = build_parser(spec)
@@ -109,8 +130,9 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         if keep is None:
             # Episodes whose world the model trained on are run (so every other episode keeps
             # its key) but left out of the planner's rows and trajectories (the baselines,
-            # trained on data of their own, are measured on every episode). The phrasing
-            # changes the tokens only: every language has the same worlds, the same keep.
+            # trained on data of their own, and the reference agents, trained on nothing, are
+            # measured on every episode). The phrasing changes the tokens only: every
+            # language has the same worlds, the same keep.
             keep = {seed: ~ge.training_overlap(checkpoint, setting, eps)
                     for seed, eps in all_episodes.items()}
         per_seed = {seed: ge.select(eps, keep[seed]) for seed, eps in all_episodes.items()}
@@ -124,18 +146,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                                                           per_seed, has_reference)
             row["language"] = language
             rows.append(row)
-        if args.baselines:
-            from experiments.baselines_eval import baseline_rows
-
-            try:
-                extra = baseline_rows(setting, seeds, args.episodes, args.batch_size, progress,
-                                      methods=args.baselines, episodes_by_seed=all_episodes)
-            except (FileNotFoundError, ValueError) as e:
-                harness.fail(f"cannot evaluate the baselines: {e}")
-            for row in extra:
-                row["method"] = method_name(row["method"], language)
-                row["language"] = language
-            rows += extra
+        rows += _policy_rows(setting, seeds, args, progress, all_episodes, language)
 
     language = languages[0]
     per_seed = episodes_of[language]

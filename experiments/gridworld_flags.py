@@ -81,8 +81,20 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                    help="add rows of the shipped baselines (checkpoints/baselines; "
                         "comma-separated of bc,cql,dd; the flag alone: all three), measured on "
                         "the same episodes and seeds as the planner's rows")
+    add_reference_agents_flag(p)
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
+
+
+def add_reference_agents_flag(parser) -> None:
+    """--no-reference-agents, shared by every grid-world table."""
+    parser.add_argument("--no-reference-agents", action="store_true",
+                        help="leave out the rows of the reference agents, which bound what a "
+                             "planner can do and are measured on the same episodes and seeds "
+                             "(no network; shown by default): 'oracle' (a shortest path with "
+                             "the whole map known) and 'searcher' (nothing learned, only what "
+                             "the agent has seen: the reference, then exploration of the "
+                             "instructed sector, then the target once seen)")
 
 
 TRAIN_FLAGS = {"train_dir": "--train-dir", "train_steps": "--train-steps",

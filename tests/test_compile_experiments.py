@@ -34,7 +34,8 @@ def test_json_contract(tiny_run):
     assert data["experiment"] == "compile_p_mo2g"
     assert data["episodes"] == 6 and data["seed"] == harness.DEFAULT_EVAL_SEED
     methods = [row["method"] for row in data["rows"]]
-    assert methods == ["one-shot", "two-shot", "on-the-fly", "warm-start on-the-fly"]
+    assert methods == ["one-shot", "two-shot", "on-the-fly", "warm-start on-the-fly", "oracle",
+                       "searcher"]
     assert data["trajectories_method"] == "on-the-fly"
     # Each re-planning row's trigger: paper-style on-the-fly before every move, warm start on
     # change (the cheap default).
@@ -46,6 +47,9 @@ def test_json_contract(tiny_run):
     calls = {row["method"]: row["denoiser_calls_per_episode"] for row in data["rows"]}
     assert calls["one-shot"] == 2.0
     assert calls["warm-start on-the-fly"] < calls["on-the-fly"]
+    assert calls["oracle"] == calls["searcher"] == 0.0
+    oracle = data["rows"][-2]
+    assert oracle["SR_ordered"] == 100.0 and oracle["SPL"] == 1.0
 
 
 def test_trajectories_file_recomputes_the_main_row(tiny_run):
@@ -78,29 +82,57 @@ def test_other_settings_evaluate_a_checkpoint(tiny_run, tmp_path):
         result = gridworld_cli.main(setting, ["--checkpoint", str(out / "train"), "--episodes", "3",
                                    "--batch-size", "3", "--num-steps", "2",
                                    "--warm-start-step", "1", "--modes", "on_the_fly",
-                                   "--json", str(tmp_path / f"{setting}.json"), "--no-progress"])
+                                   "--json", str(tmp_path / f"{setting}.json"), "--no-progress",
+                                   "--no-reference-agents"])
         assert result["experiment"] == f"compile_{setting}"
         assert [r["method"] for r in result["rows"]] == ["on-the-fly"]
         assert "SR_ordered" not in result["rows"][0]
 
 
 def test_baseline_rows_beside_the_planner(tiny_run, tmp_path):
-    """--baselines adds BC's and CQL's rows, measured on the planner's episodes: equal to
-    baselines_eval's rows for the same seeds (the table is the same measurement)."""
-    from experiments.baselines_eval import baseline_rows
+    """--baselines adds BC's and CQL's rows, and the reference agents theirs, measured on the
+    planner's episodes: equal to baselines_eval's rows for the same seeds (the table is the
+    same measurement)."""
+    from experiments.baselines_eval import baseline_rows, reference_rows
 
     out, _ = tiny_run
     result = gridworld_cli.main("1o1g", ["--checkpoint", str(out / "train"), "--episodes", "4",
                               "--seeds", "7,8", "--batch-size", "4", "--num-steps", "2",
                               "--modes", "one_shot", "--baselines", "bc,cql", "--no-progress"])
     rows = result["rows"]
-    assert [r["method"] for r in rows] == ["one-shot", "BC", "CQL"]
-    expected = baseline_rows("1o1g", (7, 8), 4, 4, False, methods=("bc", "cql"))
+    assert [r["method"] for r in rows] == ["one-shot", "BC", "CQL", "oracle", "searcher"]
+    expected = baseline_rows("1o1g", (7, 8), 4, 4, False, methods=("bc", "cql")) + \
+        reference_rows("1o1g", (7, 8), 4, 4, False)
     for row, want in zip(rows[1:], expected):
         assert row["SR"] == want["SR"] and row["path_f1"] == want["path_f1"]
         assert {s: v["SR"] for s, v in row["per_seed"].items()} == {
             s: v["SR"] for s, v in want["per_seed"].items()}
         assert len(row["SR_ci95"]) == 2
+
+
+def test_reference_agents_in_the_table_and_json_unless_left_out(tiny_run, tmp_path, capsys):
+    """The oracle's and the searcher's rows are in every grid-world table and its JSON by
+    default; --no-reference-agents (documented in --help) leaves them out, and nothing else."""
+    out, _ = tiny_run
+    argv = ["--checkpoint", str(out / "train"), "--episodes", "4", "--batch-size", "4",
+            "--num-steps", "2", "--modes", "one_shot", "--no-progress"]
+    capsys.readouterr()
+    planner_rows = []
+    for flags, methods in (([], ["one-shot", "oracle", "searcher"]),
+                           (["--no-reference-agents"], ["one-shot"])):
+        json_path = tmp_path / f"r{len(flags)}.json"
+        gridworld_cli.main("mo1g", argv + flags + ["--json", str(json_path)])
+        table = capsys.readouterr().out
+        with open(json_path) as f:
+            rows = json.load(f)["rows"]
+        assert [r["method"] for r in rows] == methods
+        for name in ("oracle", "searcher"):
+            assert any(line.startswith(name) for line in table.splitlines()) == (not flags)
+        planner_rows.append({k: v for k, v in rows[0].items() if k != "seconds"})
+    assert planner_rows[0] == planner_rows[1]
+    with pytest.raises(SystemExit):
+        gridworld_cli.main("mo1g", ["--help"])
+    assert "--no-reference-agents" in capsys.readouterr().out
 
 
 def test_language_all_makes_a_row_per_phrasing(tiny_run):
@@ -110,9 +142,11 @@ def test_language_all_makes_a_row_per_phrasing(tiny_run):
     argv = ["--checkpoint", str(out / "train"), "--episodes", "4", "--batch-size", "4",
             "--num-steps", "2", "--modes", "one_shot", "--no-progress"]
     both = gridworld_cli.main("p_mo2g", argv + ["--language", "all"])
-    assert [r["method"] for r in both["rows"]] == ["one-shot", "one-shot, paraphrased",
-                                                   "one-shot, unseen"]
-    assert [r["language"] for r in both["rows"]] == ["canonical", "paraphrased", "unseen"]
+    assert [r["method"] for r in both["rows"]] == [
+        f"{method}{suffix}" for suffix in ("", ", paraphrased", ", unseen")
+        for method in ("one-shot", "oracle", "searcher")]
+    assert [r["language"] for r in both["rows"]] == [
+        language for language in ("canonical", "paraphrased", "unseen") for _ in range(3)]
     assert both["language"] == "all"
     canonical = gridworld_cli.main("p_mo2g", argv)
     for key in ("SR", "SR_ordered", "GD", "path_f1"):
@@ -123,7 +157,8 @@ def test_profile_writes_a_trace(tiny_run, tmp_path):
     out, _ = tiny_run
     gridworld_cli.main("p_mo2g", ["--checkpoint", str(out / "train"), "--episodes", "2", "--batch-size",
                        "2", "--num-steps", "2", "--warm-num-steps", "2", "--modes",
-                       "one_shot", "--profile", str(tmp_path / "prof"), "--no-progress"])
+                       "one_shot", "--profile", str(tmp_path / "prof"), "--no-progress",
+                       "--no-reference-agents"])
     traces = [f for _, _, files in os.walk(tmp_path / "prof") for f in files]
     assert any(f.endswith((".xplane.pb", ".trace.json.gz")) for f in traces), traces
 
@@ -177,7 +212,7 @@ def test_same_seed_same_results(tiny_run, tmp_path):
     out, _ = tiny_run
     argv = ["--checkpoint", str(out / "train"), "--episodes", "4", "--batch-size", "4",
             "--num-steps", "2", "--warm-start-step", "1", "--modes", "on_the_fly",
-            "--no-progress"]
+            "--no-progress", "--no-reference-agents"]
     a = gridworld_cli.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "a.npz")])
     b = gridworld_cli.main("p_mo2g", argv + ["--trajectories", str(tmp_path / "b.npz"),
                                   "--batch-size", "3"])
@@ -206,7 +241,7 @@ def test_x0_prediction_trains_and_evaluates(tmp_path):
                                 "--model-size", "tiny", "--train-dir", str(tmp_path / "x0"),
                                 "--episodes", "2", "--batch-size", "2", "--num-steps", "2",
                                 "--warm-start-step", "1", "--modes", "on_the_fly",
-                                "--no-progress"])
+                                "--no-progress", "--no-reference-agents"])
     assert result["rows"][0]["denoiser_calls_per_episode"] > 0
     denoiser, _ = harness.load_model(str(tmp_path / "x0"))
     assert denoiser.prediction == "x0"
@@ -222,7 +257,8 @@ def test_ablation_runs_every_row_on_a_tiny_configuration(tiny_run, tmp_path):
         "--episodes", "2", "--batch-size", "2", "--num-steps", "2", "--no-progress",
         "--json", str(tmp_path / "ablation.json")])
     methods = [row["method"] for row in result["rows"]]
-    assert methods == ["mo1g baseline", "mo1g + grid repr", "mo1g + g", "mo1g + on the fly"]
+    assert methods == ["mo1g baseline", "mo1g + grid repr", "mo1g + g", "mo1g + on the fly",
+                       "mo1g oracle", "mo1g searcher"]
     for row in result["rows"]:
         assert EXPECTED_ROW_FIELDS <= set(row)
     with open(tmp_path / "ablation.json") as f:

@@ -64,7 +64,7 @@ FLAG_VALUES = {
     "--json": st.sampled_from(["/", "out.json", ""]),
     "--trajectories": st.sampled_from(["t.npz", "t", "/"]),
 }
-SWITCHES = ["--train", "--no-progress"]
+SWITCHES = ["--train", "--no-progress", "--no-reference-agents"]
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

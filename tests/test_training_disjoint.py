@@ -102,7 +102,7 @@ def test_1o1g_episodes_seen_in_training_are_counted_and_left_out(tmp_path):
     traj = tmp_path / "t.npz"
     gridworld_cli.main("1o1g", ["--episodes", "300", "--seed", "2001", "--modes", "one_shot",
                                 "--json", str(out), "--trajectories", str(traj),
-                                "--no-progress"])
+                                "--no-progress", "--no-reference-agents"])
     result = json.loads(out.read_text())
     assert result["excluded_training_episodes"] == {"2001": int(overlap.sum())}
     kept = np.load(traj)

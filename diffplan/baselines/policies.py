@@ -50,14 +50,16 @@ class PolicyWorld:
 
 @dataclasses.dataclass(frozen=True)
 class LoadedPolicy:
-    """What policy_rollout needs of a trained baseline: act_fn, params, calls_per_move,
-    plan_channels (None: no plan), and the row's method name."""
+    """What policy_rollout needs of a policy (a trained baseline or a world's reference agent):
+    act_fn, params, calls_per_move, plan_channels (None: no plan), observe (None: the task's
+    condition; see policy_rollout), and the row's method name."""
 
     method: str
     act_fn: Callable
     params: Any
     calls_per_move: int = 0
     plan_channels: int | None = None
+    observe: Optional[Callable] = None
 
 
 def export_params(train_dir: str, out_dir: str, *, ema: bool = False) -> str:

@@ -36,9 +36,10 @@ class PolicyCounters:
 
 
 def policy_rollout(task, act_fn: Callable, params, keys, episodes, *,
-                   calls_per_move: int = 0, plan_channels: Optional[int] = None) -> Rollout:
+                   calls_per_move: int = 0, plan_channels: Optional[int] = None,
+                   observe: Optional[Callable] = None) -> Rollout:
     """Runs a batch of episodes with a policy; pure and jit-able (task, act_fn,
-    calls_per_move and plan_channels static).
+    calls_per_move, plan_channels and observe static).
 
     Args:
       task: a diffplan.task.Task (e.g. envs.gridworld.task.GridTask).
@@ -49,6 +50,8 @@ def policy_rollout(task, act_fn: Callable, params, keys, episodes, *,
       calls_per_move: denoiser calls one move of the policy costs (0 for BC / CQL).
       plan_channels: G of the plans act_fn returns (None: it returns moves only; first_plan
         is then zeros with one channel).
+      observe: state -> what act_fn sees of one episode (None: ``task.condition``, what the
+        agent has seen; a privileged reference agent passes e.g. the identity).
     Returns: a Rollout (denoiser_calls = calls_per_move x moves; num_plans = moves when
       calls_per_move > 0, else 0).
     """
@@ -60,11 +63,12 @@ def policy_rollout(task, act_fn: Callable, params, keys, episodes, *,
     zeros = jnp.zeros((batch,), jnp.int32)
     counters = PolicyCounters(move=zeros, calls=zeros, num_plans=zeros)
     v_done = jax.vmap(task.done)
+    v_observe = jax.vmap(task.condition if observe is None else observe)
 
     def body(carry):
         t, states, counters, positions, first_plan = carry
         active = ~v_done(states)
-        conditions = jax.vmap(task.condition)(states)
+        conditions = v_observe(states)
         move_keys = jax.vmap(lambda k: jax.random.fold_in(k, t))(keys)
         out = act_fn(params, conditions, tokens, move_keys)
         if plan_channels is None:

@@ -67,10 +67,16 @@ def _heuristic_slots(tokens):
             jnp.where(jnp.any(is_dir), tokens[jnp.argmax(is_dir)], 0))
 
 
-def _goal_vector_one(tokens):
+def instruction_slots(tokens):
+    """(ref, target, dir) token ids int32 () of one instruction int32 (L,): the words in the
+    slots of whichever of the grammar's phrasings it is (``grammar.parse``), else those of
+    :func:`_heuristic_slots`; 0 where the instruction has no such slot."""
     matched, *slots = grammar.parse(tokens)
-    ref, target, direction = (jnp.where(matched, a, b)
-                              for a, b in zip(slots, _heuristic_slots(tokens)))
+    return tuple(jnp.where(matched, a, b) for a, b in zip(slots, _heuristic_slots(tokens)))
+
+
+def _goal_vector_one(tokens):
+    ref, target, direction = instruction_slots(tokens)
 
     def hot(token, ids):
         return jnp.where(token > 0, (jnp.asarray(ids) == token).astype(jnp.float32), 0.0)
