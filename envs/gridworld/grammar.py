@@ -72,12 +72,14 @@ TEMPLATES: dict[str, tuple[str, ...]] = {
     "1o1g": _GOAL_ONLY,
     "mo1g": _GOAL_ONLY,
     "p_mo2g": _VIA_REFERENCE,
+    "p_mo2g_far": _VIA_REFERENCE,
 }
 """Twelve phrasings of each setting's meaning: template 0 is the canonical phrasing, 1-7 the
 training paraphrases, 8-11 the held-out ("unseen") third that training never sees
 (:data:`SPLITS`; every word of them occurs in a training phrasing of the same setting).
-Settings of one meaning share one table (1o1g and mo1g: "go to the target"), and so the same
-token ids."""
+Settings of one meaning share one table: 1o1g and mo1g "go to the target"; p_mo2g and
+p_mo2g_far "go to the reference first, the target lies <dir> of it" (the same token ids, so a
+denoiser of one reads the other's instructions)."""
 
 UNSEEN_TEMPLATES = (8, 9, 10, 11)
 
