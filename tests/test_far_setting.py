@@ -97,6 +97,7 @@ def test_the_issues_configuration():
     (dict(ref_target_radius=6), "2 \\* view_radius"),
     (dict(ref_target_radius=3), "2 \\* view_radius"),
     (dict(view_radius=None), "finite view_radius"),
+    (dict(view_radius=0), "view_radius >= 1"),  # no reference could be seen at t=0
     (dict(min_objects=1), "min_objects >= 2"),
     (dict(max_steps=23), "max_steps"),  # the longest expert path: 2 * 3 + 2 * 9 = 24
 ])

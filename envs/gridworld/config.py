@@ -111,6 +111,9 @@ class GridConfig:
             return errors + [f"{self.setting} needs a finite view_radius (it is partially "
                              "observable)"]
         if self.target_beyond_reference_view:
+            if vr < 1:
+                errors.append(f"{self.setting} needs view_radius >= 1 (the reference is seen at "
+                              f"t=0 from the agent's cell), got {vr}")
             # A reference anywhere in view has a target cell beyond both views: k cells from it
             # along its longer axis (k = min(rtr, size // 2)) is > vr from the reference and
             # >= k - vr > vr from the agent.
