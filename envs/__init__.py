@@ -42,6 +42,7 @@ _BUILTIN: dict[str, Callable[..., World]] = {
     "gridworld/1o1g": _gridworld("1o1g"),
     "gridworld/mo1g": _gridworld("mo1g"),
     "gridworld/p_mo2g": _gridworld("p_mo2g"),
+    "gridworld/p_mo2g_far": _gridworld("p_mo2g_far"),
     "kuka/stacking": _kuka("stacking"),
     "kuka/rearrangement": _kuka("rearrangement"),
 }

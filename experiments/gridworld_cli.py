@@ -1,7 +1,8 @@
 """The CompILE grid-world experiments (the paper's Tables 1, 4 and 6): ``experiments.compile_1o1g``,
-``compile_mo1g`` and ``compile_p_mo2g`` call :func:`main`: load (or train) the denoiser, evaluate
-it on fresh seeded episodes in every planning mode, print a table, write JSON (contract 2 of
-docs/DESIGN.md), and optionally the executed trajectories, a profile and figures.
+``compile_mo1g``, ``compile_p_mo2g`` (and ``compile_p_mo2g_far``, beyond the paper) call
+:func:`main`: load (or train) the denoiser, evaluate it on fresh seeded episodes in every
+planning mode, print a table, write JSON (contract 2 of docs/DESIGN.md), and optionally the
+executed trajectories, a profile and figures.
 
 Seeds: see experiments.harness. Training draws its examples from ``fold_in(step_key,
 TRAIN_STREAM)`` keys of its own seed (``envs.gridworld.training``), so training never sees the

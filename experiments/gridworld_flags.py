@@ -1,5 +1,6 @@
-"""The flags of the grid-world experiment CLIs (compile_1o1g, compile_mo1g, compile_p_mo2g) and
-their checks, run before any work: a user error ends in one line on stderr, exit code 2."""
+"""The flags of the grid-world experiment CLIs (compile_1o1g, compile_mo1g, compile_p_mo2g,
+compile_p_mo2g_far) and their checks, run before any work: a user error ends in one line on
+stderr, exit code 2."""
 from __future__ import annotations
 
 import argparse

@@ -165,6 +165,9 @@ SPECS = {
     "1o1g": ExperimentSpec("1o1g", modes=("one_shot", "on_the_fly", "warm_start")),
     "mo1g": ExperimentSpec("mo1g", modes=("one_shot", "on_the_fly", "warm_start")),
     "p_mo2g": ExperimentSpec("p_mo2g"),
+    # Beyond the paper (envs.gridworld.config): evaluated with the denoiser of the three paper
+    # settings, which never trained on it (it is not in TRAINING_MIXTURE).
+    "p_mo2g_far": ExperimentSpec("p_mo2g_far"),
 }
 
 

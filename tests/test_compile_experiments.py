@@ -52,14 +52,14 @@ def test_json_contract(tiny_run):
     assert oracle["SR_ordered"] == 100.0 and oracle["SPL"] == 1.0
 
 
-def test_trajectories_file_recomputes_the_main_row(tiny_run):
-    out, result = tiny_run
-    traj = np.load(out / "t.npz")
+def check_trajectories(traj, result, n: int):
+    """A run's trajectories file (n episodes) holds contract 2's arrays, recomputes the main
+    row's metrics, and its moves are 4-connected, inside the grid, never into an obstacle."""
     for key in ("grid", "agent", "target", "reference", "expert_path", "expert_length",
                 "visible0", "instruction", "object_names", "positions", "steps", "success"):
         assert key in traj.files, key
-    assert traj["positions"].shape == (6, 101, 2) and traj["positions"].dtype == np.int32
-    assert traj["grid"].dtype == np.int8 and traj["grid"].shape == (6, 16, 16)
+    assert traj["positions"].shape == (n, 101, 2) and traj["positions"].dtype == np.int32
+    assert traj["grid"].dtype == np.int8 and traj["grid"].shape == (n, 16, 16)
     # Anyone can recompute the metrics of the main row from what the agent did.
     recomputed = metrics.trajectory_metrics(traj["positions"], traj["steps"], traj["target"],
                                             traj["expert_path"], traj["reference"],
@@ -70,10 +70,40 @@ def test_trajectories_file_recomputes_the_main_row(tiny_run):
     # Executed moves are 4-connected, inside the grid, never into an obstacle.
     pos = traj["positions"]
     assert np.all(np.abs(np.diff(pos, axis=1)).sum(-1) <= 1)
-    n = np.arange(6)[:, None]
-    assert np.all(traj["grid"][n, pos[..., 0], pos[..., 1]] != -1)
-    np.testing.assert_array_equal(traj["success"], np.all(pos[np.arange(6), traj["steps"]] ==
+    rows = np.arange(n)[:, None]
+    assert np.all(traj["grid"][rows, pos[..., 0], pos[..., 1]] != -1)
+    np.testing.assert_array_equal(traj["success"], np.all(pos[np.arange(n), traj["steps"]] ==
                                                           traj["target"], axis=-1))
+
+
+def test_trajectories_file_recomputes_the_main_row(tiny_run):
+    out, result = tiny_run
+    check_trajectories(np.load(out / "t.npz"), result, 6)
+
+
+def test_p_mo2g_far_runs_from_its_entry_point(tiny_run, tmp_path, monkeypatch):
+    """`python -m experiments.compile_p_mo2g_far` evaluates a checkpoint of the paper's settings
+    on the far setting: the ordered success in its row, trajectories of far episodes (the
+    target 4-9 cells from the reference, unseen at t=0)."""
+    import runpy
+    import sys
+
+    out, _ = tiny_run
+    monkeypatch.setattr(sys, "argv", [
+        "compile_p_mo2g_far", "--checkpoint", str(out / "train"), "--episodes", "4",
+        "--batch-size", "4", "--num-steps", "2", "--modes", "on_the_fly", "--json",
+        str(tmp_path / "r.json"), "--trajectories", str(tmp_path / "t.npz"), "--no-progress"])
+    runpy.run_module("experiments.compile_p_mo2g_far", run_name="__main__")
+    result = json.loads((tmp_path / "r.json").read_text())
+    assert (result["experiment"], result["setting"]) == ("compile_p_mo2g_far", "p_mo2g_far")
+    assert [r["method"] for r in result["rows"]] == ["on-the-fly"]
+    assert "SR_ordered" in result["rows"][0]
+    traj = np.load(tmp_path / "t.npz")
+    check_trajectories(traj, result, 4)
+    far = np.abs(traj["target"] - traj["reference"]).max(-1)
+    assert ((far >= 4) & (far <= 9)).all()
+    target = traj["target"]
+    assert not traj["visible0"][np.arange(4), target[:, 0], target[:, 1]].any()
 
 
 def test_other_settings_evaluate_a_checkpoint(tiny_run, tmp_path):

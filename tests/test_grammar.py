@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from envs.gridworld import grammar
-from envs.gridworld.config import SETTINGS
+from envs.gridworld.config import REFERENCE_SETTINGS, SETTINGS
 
 
 def all_fillings(setting):
@@ -17,7 +17,7 @@ def all_fillings(setting):
     ref_class 0 and direction -1 where the setting has no slot)."""
     templates = range(len(grammar.TEMPLATES[setting]))
     classes = range(1, len(grammar.OBJECT_NAMES) + 1)
-    if setting == "p_mo2g":
+    if setting in REFERENCE_SETTINGS:
         return [(t, r, g, d) for t, r, g, d in itertools.product(
             templates, classes, classes, range(len(grammar.DIRECTIONS))) if r != g]
     return [(t, 0, g, -1) for t, g in itertools.product(templates, classes)]
@@ -44,7 +44,7 @@ def test_round_trip_every_template_object_direction(setting):
         assert grammar.decode(ids) == text
         words = grammar.split_words(text)
         assert grammar.OBJECT_NAMES[g - 1] in words
-        if setting == "p_mo2g":
+        if setting in REFERENCE_SETTINGS:
             assert grammar.OBJECT_NAMES[r - 1] in words and grammar.DIRECTIONS[d] in words
         count += 1
     assert count == len(all_fillings(setting)) > 0
@@ -58,7 +58,7 @@ def test_paraphrases_exist(setting):
     # Every template has the setting's slots (an object may be named twice; one direction).
     for template in templates:
         assert template.count("{target}") >= 1
-        if setting == "p_mo2g":
+        if setting in REFERENCE_SETTINGS:
             assert template.count("{ref}") >= 1 and template.count("{dir}") == 1
         else:
             assert "{ref}" not in template and "{dir}" not in template
@@ -94,7 +94,7 @@ def test_compiled_templates(setting):
     for row, template in zip(compiled, grammar.TEMPLATES[setting]):
         assert (row == grammar.SLOT_TARGET).sum() == template.count("{target}") >= 1
         assert (row == grammar.SLOT_REF).sum() == template.count("{ref}")
-        assert ((row == grammar.SLOT_REF).sum() >= 1) == (setting == "p_mo2g")
+        assert ((row == grammar.SLOT_REF).sum() >= 1) == (setting in REFERENCE_SETTINGS)
         n = len(grammar.split_words(template))
         assert (row[n:] == 0).all() and (row[:n] != 0).all()
     with pytest.raises(ValueError, match="unknown setting"):

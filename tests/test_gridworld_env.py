@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from envs.gridworld import grammar
-from envs.gridworld.config import SETTINGS
+from envs.gridworld.config import REFERENCE_SETTINGS, SETTINGS
 
 SEEDS = st.integers(0, 2**32 - 1)
 MOVES = np.array([[-1, 0], [0, 1], [1, 0], [0, -1]])  # N, E, S, W; row 0 is north
@@ -169,8 +169,9 @@ def test_field_of_view(rollout, grid_configs, setting):
         assert (seen[:, -1].sum((1, 2)) > seen[:, 0].sum((1, 2))).any()  # the view grows
 
 
-def test_p_mo2g_target_hidden_reference_visible_at_t0(rollout):
-    r = rollout("p_mo2g", 2)
+@pytest.mark.parametrize("setting", REFERENCE_SETTINGS)
+def test_target_hidden_reference_visible_at_t0(rollout, setting):
+    r = rollout(setting, 2)
     eps, cells = r["episodes"], r["obs0"].cells
     idx = np.arange(len(eps.agent))
     target_cells = cells[idx, eps.target[:, 0], eps.target[:, 1]]

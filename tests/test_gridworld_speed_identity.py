@@ -29,6 +29,9 @@ EPISODE_HASHES = {
     ("mo1g", 12): ("99821f971163c90c", 736, 323),
     ("p_mo2g", 0): ("1a2294cccfbac4f9", 999, 305),
     ("p_mo2g", 12): ("341452d78548e4ae", 995, 323),
+    # p_mo2g_far (beyond the paper), pinned when it was added.
+    ("p_mo2g_far", 0): ("524d4c90d95b4a93", 863, 653),
+    ("p_mo2g_far", 12): ("1ea7f84d9850c0df", 907, 622),
 }
 
 

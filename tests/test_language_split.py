@@ -12,7 +12,7 @@ from hypothesis import given, settings, strategies as st
 
 from diffplan import language
 from envs.gridworld import grammar as grid_grammar
-from envs.gridworld.config import SETTINGS, make_config
+from envs.gridworld.config import REFERENCE_SETTINGS, SETTINGS, make_config
 from envs.kuka import grammar as kuka_grammar
 
 KUKA_SPLITS = {"relation": kuka_grammar.RELATION_SPLIT, "tower": kuka_grammar.TOWER_SPLIT}
@@ -113,7 +113,7 @@ def test_match_template_against_oracle(setting, template, ref, target, direction
     assert np.asarray(slots).tolist() == want_slots
     ref_tok, target_tok = grid_grammar.class_to_token(ref), grid_grammar.class_to_token(target)
     assert int(slots[1]) == target_tok
-    if setting == "p_mo2g":
+    if setting in REFERENCE_SETTINGS:
         assert int(slots[0]) == ref_tok
         assert int(slots[2]) == grid_grammar.DIRECTION_TOKEN_IDS[direction]
 

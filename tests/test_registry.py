@@ -56,8 +56,8 @@ def test_every_registered_world_runs_the_protocol_under_jit_vmap(name):
 
 
 def test_names_cover_both_worlds():
-    assert {"gridworld/1o1g", "gridworld/mo1g", "gridworld/p_mo2g", "kuka/stacking",
-            "kuka/rearrangement"} <= set(envs.names())
+    assert {"gridworld/1o1g", "gridworld/mo1g", "gridworld/p_mo2g", "gridworld/p_mo2g_far",
+            "kuka/stacking", "kuka/rearrangement"} <= set(envs.names())
 
 
 def test_overrides_reach_the_config_and_the_task():

@@ -105,6 +105,14 @@ def test_missing_keys_take_the_experiment_clis_defaults(mode):
     assert config["task"] == "gridworld/p_mo2g"
 
 
+def test_every_grid_setting_is_a_sweep_task():
+    """A setting the CLIs know (p_mo2g_far too) is a registered task a sweep can name."""
+    for setting in SPECS:
+        config = sweep_config.normalise({"setting": setting}, 0)
+        assert config["task"] == f"gridworld/{setting}" in sweep_config.tasks()
+        assert sweep_config.spec_of(config).grid_config().setting == setting
+
+
 def test_two_devices_give_the_single_device_episodes(tiny_checkpoint, tmp_path):
     """The same sweep with 2 host devices (XLA_FLAGS) writes the same trajectories."""
     outs = {}

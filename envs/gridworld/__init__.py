@@ -1,4 +1,5 @@
-"""The CompILE-style grid world (jax.numpy): settings 1o1g, mo1g and p_mo2g.
+"""The CompILE-style grid world (jax.numpy): settings 1o1g, mo1g and p_mo2g, and p_mo2g_far
+(beyond the paper: the target out of the reference's view).
 
 ``make(setting, **overrides)`` is what ``envs.make("gridworld/<setting>")`` calls.
 """

@@ -6,7 +6,10 @@ import dataclasses
 from diffplan import language
 from envs.gridworld import grammar
 
-SETTINGS = ("1o1g", "mo1g", "p_mo2g")
+SETTINGS = ("1o1g", "mo1g", "p_mo2g", "p_mo2g_far")
+REFERENCE_SETTINGS = ("p_mo2g", "p_mo2g_far")
+"""The settings whose instruction names a reference to visit first and a compass direction from
+it to the target (the same sentences, grammar.TEMPLATES)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -16,14 +19,21 @@ class GridConfig:
     Attributes:
       setting: "1o1g" (one object, the goal, no obstacles), "mo1g" (several distinct objects, one
         the goal), "p_mo2g" (partially observable: a visible reference object and a target that
-        is not visible at t=0, in the instructed compass direction from the reference).
+        is not visible at t=0, in the instructed compass direction from the reference),
+        "p_mo2g_far" (as p_mo2g, but the target lies beyond the view of the reference: standing
+        on it does not reveal the target, the agent has to search the instructed sector).
       size: the grid is size x size cells.
       min_objects, max_objects: number of distinct objects per episode (uniform in the range).
       max_obstacles: number of obstacles is uniform in 0..max_obstacles.
       view_radius: Chebyshev radius of the field of view (a square around the agent, clipped at
         the border, accumulated over time); None means the world is fully observable.
       ref_target_radius: in p_mo2g the target lies within this Chebyshev distance of the
-        reference, so that standing on the reference reveals it (must be <= view_radius).
+        reference, so that standing on the reference reveals it (must be <= view_radius); in
+        p_mo2g_far the target lies at Chebyshev distance view_radius + 1 .. ref_target_radius
+        from the reference, never visible from it (must be > view_radius).
+      all_objects_reachable: re-draw obstacle layouts that wall off any object (distractors
+        included) from the agent; otherwise only the expert path (through the reference to the
+        target) must exist. True in p_mo2g_far; the paper's settings keep their episodes.
       max_steps: episode length in moves.
       language: how instructions are phrased (grammar.LANGUAGES): "canonical" (template 0),
         "paraphrased" (a training paraphrase), "unseen" (a held-out phrasing training never
@@ -40,6 +50,7 @@ class GridConfig:
     max_obstacles: int = 10
     view_radius: int | None = 6
     ref_target_radius: int = 6
+    all_objects_reachable: bool = False
     max_steps: int = 100
     language: str = "canonical"
     paraphrase: bool = False
@@ -83,33 +94,58 @@ class GridConfig:
                 "obstacle-free expert path of this setting: some episodes would be unsolvable")
         if self.ref_target_radius < 1:
             errors.append(f"ref_target_radius must be >= 1, got {self.ref_target_radius}")
-        if self.setting == "p_mo2g":
-            if self.view_radius is None:
-                errors.append("p_mo2g needs a finite view_radius (it is partially observable)")
-            elif not 1 <= self.ref_target_radius <= self.view_radius:
-                errors.append(
-                    f"ref_target_radius must be in 1..view_radius={self.view_radius}, "
-                    f"got {self.ref_target_radius}")
-            elif 2 * self.view_radius + 1 >= self.size:
-                errors.append(
-                    f"view_radius={self.view_radius} sees the whole {self.size}x{self.size} grid "
-                    "from its centre: no target could start unseen")
-            if self.min_objects < 2:
-                errors.append("p_mo2g needs min_objects >= 2 (a reference and a target)")
+        if self.has_reference:
+            errors += self._reference_errors()
         if self.setting == "1o1g" and (self.min_objects, self.max_objects) != (1, 1):
             errors.append("1o1g has exactly one object (min_objects = max_objects = 1)")
         if errors:
             raise ValueError("invalid GridConfig: " + "; ".join(errors))
 
+    def _reference_errors(self) -> list[str]:
+        """What is wrong with the placement of the reference and the target (settings with a
+        reference); [] if nothing."""
+        errors, vr, rtr = [], self.view_radius, self.ref_target_radius
+        if self.min_objects < 2:
+            errors.append(f"{self.setting} needs min_objects >= 2 (a reference and a target)")
+        if vr is None:
+            return errors + [f"{self.setting} needs a finite view_radius (it is partially "
+                             "observable)"]
+        if self.target_beyond_reference_view:
+            if vr < 1:
+                errors.append(f"{self.setting} needs view_radius >= 1 (the reference is seen at "
+                              f"t=0 from the agent's cell), got {vr}")
+            # A reference anywhere in view has a target cell beyond both views: k cells from it
+            # along its longer axis (k = min(rtr, size // 2)) is > vr from the reference and
+            # >= k - vr > vr from the agent.
+            if not min(rtr, self.size // 2) > 2 * vr:
+                errors.append(
+                    f"{self.setting} needs min(ref_target_radius, size // 2) > 2 * view_radius "
+                    f"(so that every reference in view has a target cell seen neither from it "
+                    f"nor from the agent), got ref_target_radius={rtr}, size={self.size}, "
+                    f"view_radius={vr}")
+        elif not 1 <= rtr <= vr:
+            errors.append(f"ref_target_radius must be in 1..view_radius={vr}, got {rtr}")
+        elif 2 * vr + 1 >= self.size:
+            errors.append(
+                f"view_radius={vr} sees the whole {self.size}x{self.size} grid from its centre: "
+                "no target could start unseen")
+        return errors
+
     def longest_expert_path(self) -> int:
         """Moves of the longest expert path on an obstacle-free grid of this setting."""
-        if self.setting == "p_mo2g" and self.view_radius is not None:
+        if self.has_reference and self.view_radius is not None:
             return 2 * self.view_radius + 2 * self.ref_target_radius
         return 2 * (self.size - 1)
 
     @property
     def has_reference(self) -> bool:
-        return self.setting == "p_mo2g"
+        return self.setting in REFERENCE_SETTINGS
+
+    @property
+    def target_beyond_reference_view(self) -> bool:
+        """The target lies view_radius + 1 .. ref_target_radius from the reference (p_mo2g_far)
+        rather than within ref_target_radius <= view_radius of it (p_mo2g)."""
+        return self.setting == "p_mo2g_far"
 
     @property
     def num_templates(self) -> int:
@@ -127,6 +163,9 @@ def make_config(setting: str, **overrides) -> GridConfig:
         "1o1g": dict(min_objects=1, max_objects=1, max_obstacles=0, view_radius=None),
         "mo1g": dict(min_objects=2, max_objects=8, max_obstacles=10, view_radius=None),
         "p_mo2g": dict(min_objects=5, max_objects=8, max_obstacles=10, view_radius=6),
+        # Not a setting of the paper: the target 4-9 cells from the reference, unseen from it.
+        "p_mo2g_far": dict(min_objects=5, max_objects=8, max_obstacles=20, view_radius=3,
+                           ref_target_radius=9, all_objects_reachable=True),
     }
     if setting not in defaults:
         raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")

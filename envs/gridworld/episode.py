@@ -3,7 +3,8 @@
 An :class:`Episode` holds everything fixed for an episode: the grid, the start, the goal, the
 instruction (as token ids) and the expert path (a shortest obstacle-free 4-connected path from the
 agent through the reference, if any, to the target). Every generated episode is solvable within
-``max_steps`` moves: layouts whose expert path would not exist are re-drawn.
+``max_steps`` moves: layouts whose expert path would not exist (or, with
+``GridConfig.all_objects_reachable``, that wall off any object) are re-drawn.
 """
 from __future__ import annotations
 
@@ -132,6 +133,8 @@ def _place_goal_cells(key, config: GridConfig, agent):
     coords = _cell_coords(config.size)
     k_target, k_ref = jax.random.split(key)
     d_agent = chebyshev(coords, agent)
+    if config.target_beyond_reference_view:
+        return _place_far_goal_cells(k_target, k_ref, config, coords, d_agent)
     if config.has_reference:
         vr, rtr = config.view_radius, config.ref_target_radius
         # Unseen at t=0, yet close enough to some cell the agent sees for a reference to exist.
@@ -141,6 +144,20 @@ def _place_goal_cells(key, config: GridConfig, agent):
     else:
         target = _choose_cell(k_target, d_agent > 0)
         reference = jnp.array([-1, -1], jnp.int32)
+    return target, reference
+
+
+def _place_far_goal_cells(k_target, k_ref, config: GridConfig, coords, d_agent):
+    """p_mo2g_far's (target, reference), int32 (2,) each: the reference uniform among the cells
+    the agent sees at t=0 (Chebyshev 1..view_radius from it), then the target uniform among the
+    cells view_radius + 1 .. ref_target_radius from the reference (never in its view) that the
+    agent does not see at t=0 either. The instruction's direction is the target's compass
+    sector from the reference (compass_sector). GridConfig's check guarantees a target cell."""
+    vr = config.view_radius
+    reference = _choose_cell(k_ref, (d_agent > 0) & (d_agent <= vr))
+    d_ref = chebyshev(coords, reference)
+    target = _choose_cell(k_target,
+                          (d_ref > vr) & (d_ref <= config.ref_target_radius) & (d_agent > vr))
     return target, reference
 
 
@@ -183,6 +200,17 @@ def _expert_length(config: GridConfig, fields, agent, reference):
     if config.has_reference:
         return to_ref[agent[0], agent[1]] + to_target[reference[0], reference[1]]
     return to_target[agent[0], agent[1]]
+
+
+def _solvable(config: GridConfig, fields, length, objects):
+    """bool (): the expert path (length from _expert_length) fits in max_steps and, with
+    config.all_objects_reachable, every object cell (objects bool (H, W)) is reachable: it
+    lies in the target's component (to_target finite), which the agent's is when the expert
+    path exists (moves are reversible)."""
+    ok = length <= config.max_steps
+    if config.all_objects_reachable:
+        ok &= ~jnp.any(objects & (fields[0] >= bfs.INF))
+    return ok
 
 
 def _expert_positions(config: GridConfig, passable, fields, agent, reference):
@@ -230,8 +258,8 @@ def generate(key, config: GridConfig) -> Episode:
         return _random_subset(k_cells, free, count, config.max_obstacles)
 
     def cond(carry):
-        # The obstacle-free fallback is always solvable (GridConfig checks max_steps), so the
-        # attempt cap is only a guard.
+        # The obstacle-free fallback is always solvable (GridConfig checks max_steps; every
+        # object is reachable), so the attempt cap is only a guard.
         return ~carry[3] & (carry[0] <= _MAX_LAYOUT_TRIES + 1)
 
     def body(carry):
@@ -241,7 +269,8 @@ def generate(key, config: GridConfig) -> Episode:
         obstacles = draw_layout(jax.random.fold_in(k_obstacles, attempt), attempt)
         fields = _goal_fields(config, ~obstacles, target, reference)
         length = _expert_length(config, fields, agent, reference)
-        return attempt + 1, obstacles, fields, length <= config.max_steps, length
+        return attempt + 1, obstacles, fields, _solvable(config, fields, length, grid > 0), \
+            length
 
     _, obstacles, fields, _, length = jax.lax.while_loop(cond, body,
                                                          body((jnp.int32(0), None, None, None)))

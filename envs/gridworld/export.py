@@ -238,7 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--setting", required=True, choices=SETTINGS,
                         help="1o1g: one object, no obstacles, fully observed; mo1g: several "
                              "objects and obstacles, fully observed; p_mo2g: partially observed, "
-                             "a visible reference object and a target hidden at t=0")
+                             "a visible reference object and a target hidden at t=0; "
+                             "p_mo2g_far: as p_mo2g, the target also hidden from the reference, "
+                             "4-9 cells from it")
     parser.add_argument("--n", type=int, required=True, help="number of episodes (>= 1)")
     parser.add_argument("--seed", type=int, default=0, help=f"random seed (0..{MAX_SEED})")
     parser.add_argument("--out", required=True,

@@ -51,29 +51,35 @@ _GOAL_ONLY = (
     "Go where the {target} is.",
 )
 
+_VIA_REFERENCE = (
+    # training: canonical (0) and paraphrases (1-7); 6 and 7 name the target first
+    "First, go to the {ref}. Then, go {dir} to find the {target}.",
+    "First, walk to the {ref}, then head {dir} towards the {target}.",
+    "Go to the {ref} first. The {target} is {dir} of it.",
+    "Find the {ref}. From there, the {target} lies to the {dir}.",
+    "Head towards the {ref}, then go {dir} and find the {target}.",
+    "Navigate to the {ref}. Then, search {dir} for the {target}.",
+    "The {target} lies {dir} of the {ref}. Go to the {ref} first.",
+    "The {target} is to the {dir} of the {ref}. Walk to the {ref}, then find the {target}.",
+    # held out (8-11); 9 and 11 name the target first
+    "Walk to the {ref}. The {target} is {dir} of the {ref}.",
+    "The {target} lies to the {dir} of the {ref}. First, go to the {ref}.",
+    "Navigate to the {ref} first, then search {dir} for the {target}.",
+    "Find the {target}. It lies {dir} of the {ref}. Go to the {ref} first.",
+)
+
 TEMPLATES: dict[str, tuple[str, ...]] = {
     "1o1g": _GOAL_ONLY,
     "mo1g": _GOAL_ONLY,
-    "p_mo2g": (
-        # training: canonical (0) and paraphrases (1-7); 6 and 7 name the target first
-        "First, go to the {ref}. Then, go {dir} to find the {target}.",
-        "First, walk to the {ref}, then head {dir} towards the {target}.",
-        "Go to the {ref} first. The {target} is {dir} of it.",
-        "Find the {ref}. From there, the {target} lies to the {dir}.",
-        "Head towards the {ref}, then go {dir} and find the {target}.",
-        "Navigate to the {ref}. Then, search {dir} for the {target}.",
-        "The {target} lies {dir} of the {ref}. Go to the {ref} first.",
-        "The {target} is to the {dir} of the {ref}. Walk to the {ref}, then find the {target}.",
-        # held out (8-11); 9 and 11 name the target first
-        "Walk to the {ref}. The {target} is {dir} of the {ref}.",
-        "The {target} lies to the {dir} of the {ref}. First, go to the {ref}.",
-        "Navigate to the {ref} first, then search {dir} for the {target}.",
-        "Find the {target}. It lies {dir} of the {ref}. Go to the {ref} first.",
-    ),
+    "p_mo2g": _VIA_REFERENCE,
+    "p_mo2g_far": _VIA_REFERENCE,
 }
 """Twelve phrasings of each setting's meaning: template 0 is the canonical phrasing, 1-7 the
 training paraphrases, 8-11 the held-out ("unseen") third that training never sees
-(:data:`SPLITS`; every word of them occurs in a training phrasing of the same setting)."""
+(:data:`SPLITS`; every word of them occurs in a training phrasing of the same setting).
+Settings of one meaning share one table: 1o1g and mo1g "go to the target"; p_mo2g and
+p_mo2g_far "go to the reference first, the target lies <dir> of it" (the same token ids, so a
+denoiser of one reads the other's instructions)."""
 
 UNSEEN_TEMPLATES = (8, 9, 10, 11)
 
@@ -171,10 +177,13 @@ def render(setting: str, template: int, ref_class: int, target_class: int, direc
 
 
 def _all_templates():
-    """Every setting's compiled templates stacked (int32 (sum N, MAX_TOKENS)) and the setting
-    name and template index of each row."""
+    """Every distinct table of templates compiled and stacked (int32 (sum N, MAX_TOKENS)) and
+    the setting name (the first setting of the table) and template index of each row."""
     rows, names = [], []
-    for setting in TEMPLATES:
+    first_setting = {}
+    for setting, table in TEMPLATES.items():
+        first_setting.setdefault(table, setting)
+    for setting in first_setting.values():
         rows.append(compile_templates(setting))
         names += [(setting, i) for i in range(len(TEMPLATES[setting]))]
     return np.concatenate(rows), tuple(names)
