@@ -96,7 +96,8 @@ def test_p_mo2g_far_runs_from_its_entry_point(tiny_run, tmp_path, monkeypatch):
     runpy.run_module("experiments.compile_p_mo2g_far", run_name="__main__")
     result = json.loads((tmp_path / "r.json").read_text())
     assert (result["experiment"], result["setting"]) == ("compile_p_mo2g_far", "p_mo2g_far")
-    assert [r["method"] for r in result["rows"]] == ["on-the-fly"]
+    assert [r["method"] for r in result["rows"]] == ["on-the-fly", "oracle", "searcher"]
+    assert result["rows"][1]["SR_ordered"] == 100.0 and result["rows"][1]["SPL"] == 1.0
     assert "SR_ordered" in result["rows"][0]
     traj = np.load(tmp_path / "t.npz")
     check_trajectories(traj, result, 4)

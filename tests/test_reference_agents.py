@@ -74,7 +74,8 @@ def test_rows_carry_every_metric_with_intervals_and_per_seed_values(setting, row
         for key in ("SR", "GD", "SPL", "path_precision", "path_recall", "path_f1", "SR_ci95",
                     "denoiser_calls_per_episode", "seconds"):
             assert key in row, key
-        assert ("SR_ordered" in row) == ("SR_ordered_ci95" in row) == (setting == "p_mo2g")
+        assert ("SR_ordered" in row) == ("SR_ordered_ci95" in row) == make_config(
+            setting).has_reference
         assert set(row["per_seed"]) == {str(s) for s in SEEDS}
         assert row["denoiser_calls_per_episode"] == 0.0 and "plan_f1" not in row
 
