@@ -118,14 +118,15 @@ def test_bench_train_split_only(tmp_path):
 
 
 def _check_split(split, batch):
-    """Every part takes time, no part exceeds the full step by much, and the sustained
-    training loop reports its windows."""
+    """Every part takes time, the shares are of the full step, and the sustained training loop
+    reports its windows. (No bound on one part's time against another's: timings of a loaded
+    CPU vary, and a unit test never asserts a speed; benchmarks print ratios.)"""
     parts = {p["part"]: p for p in split["parts"]}
     assert list(parts) == ["generation", "forward", "forward+backward", "full step"]
     full = parts["full step"]["ms"]
     assert all(p["ms"] > 0 for p in parts.values())
-    for name in ("generation", "forward", "forward+backward"):
-        assert parts[name]["ms"] <= 1.5 * full, (name, parts)
+    for p in parts.values():
+        assert p["share"] == pytest.approx(100.0 * p["ms"] / full)
     assert parts["full step"]["share"] == pytest.approx(100.0)
     assert split["steps_per_second"] == pytest.approx(1000.0 / full)
     assert split["examples_per_second"] == pytest.approx(1000.0 * batch / full)
