@@ -301,10 +301,7 @@ class Planner(struct.PyTreeNode):
         chunk = max(MIN_SUB_BATCH, b if chunk is None else int(chunk))
         fresh_chunk = chunk if fresh_chunk is None else max(MIN_SUB_BATCH, int(fresh_chunk))
         keys = jax.vmap(self._plan_key)(states)
-
-        def fresh(idx):
-            return jax.vmap(lambda k, c, t: self._sample(k, c, t, None))(
-                keys[idx], conditions[idx], states.tokens[idx])
+        fresh = self._fresh_rows(keys, conditions, states.tokens)
 
         def warm_plans(idx):
             return jax.vmap(self._sample)(keys[idx], conditions[idx], states.tokens[idx],
@@ -332,12 +329,8 @@ class Planner(struct.PyTreeNode):
         need = jnp.asarray(need, bool)
         chunk = max(MIN_SUB_BATCH, need.shape[0] if chunk is None else int(chunk))
         keys = jax.vmap(lambda s: jax.random.fold_in(self._plan_key(s), RETRY_STREAM))(states)
-
-        def fresh(idx):
-            return jax.vmap(lambda k, c, t: self._sample(k, c, t, None))(
-                keys[idx], conditions[idx], states.tokens[idx])
-
-        plans = subset_update(need, fresh, states.plan, chunk)
+        plans = subset_update(need, self._fresh_rows(keys, conditions, states.tokens),
+                              states.plan, chunk)
         n = need.astype(jnp.int32)
         return plans, states.replace(
             plan=plans,
@@ -347,6 +340,11 @@ class Planner(struct.PyTreeNode):
             num_plans=states.num_plans + n)
 
     # ------------------------------------------------------------------ internals
+
+    def _fresh_rows(self, keys, conditions, tokens):
+        """idx -> plans from noise of those rows (subset_update's compute)."""
+        return lambda idx: jax.vmap(lambda k, c, t: self._sample(k, c, t, None))(
+            keys[idx], conditions[idx], tokens[idx])
 
     def _check_condition(self, condition, batched: bool):
         h, w, g = self.plan_shape

@@ -125,31 +125,33 @@ def episode_counts(episodes, final):
     return (strict & valid).sum(-1), valid.sum(-1)
 
 
-def placement_spl(episodes, final) -> float:
-    """SPL over placements: the mean of S_i * l_i / max(p_i, l_i), S_i the episode's success
-    (every instructed constraint holds and, for stacking, one tower of four), l_i the
-    placements needed (the expert's goal relations: every block starts on the floor), p_i the
-    placements used."""
+def _towers(final):
+    """bool (n,): the four blocks stand in one tower (metrics.single_tower) in final."""
     from envs.kuka import metrics
 
-    strict, _ = constraint_success(episodes, final)
+    return np.asarray(jax.vmap(metrics.single_tower)(final["block_pos"], final["held"]))
+
+
+def placement_spl(episodes, final, strict, tower) -> float:
+    """SPL over placements (diffplan.metrics.spl): S_i the episode's success (every instructed
+    constraint holds, strict (n, 3), and, for stacking, one tower of four, tower (n,)), l_i
+    the placements needed (the expert's goal relations: every block starts on the floor), p_i
+    the placements used."""
+    from diffplan.metrics import spl
+
     valid = np.asarray(episodes.constraints)[..., 0] >= 0
-    tower = np.asarray(jax.vmap(metrics.single_tower)(final["block_pos"], final["held"]))
     success = (strict | ~valid).all(-1) & (tower | ~np.asarray(episodes.tower, bool))
     needed = (np.asarray(episodes.goal)[..., 0] >= 0).sum(-1)
-    used = np.asarray(final["placements"])
-    return float(np.mean(success * needed / np.maximum(np.maximum(used, needed), 1)))
+    return spl(success, final["placements"], needed)
 
 
 def column_metrics(method: str, column: str, episodes, final, seconds: float) -> dict:
     """A results row from the final physical states (numpy). settle_changed counts the
     instructed constraints whose strict success changed while the blocks settled (0 when the
     final states have no released poses)."""
-    from envs.kuka import metrics
-
     strict, loose = constraint_success(episodes, final)
     valid = np.asarray(episodes.constraints)[..., 0] >= 0
-    tower = np.asarray(jax.vmap(metrics.single_tower)(final["block_pos"], final["held"]))
+    tower = _towers(final)
     is_stacking = bool(np.asarray(episodes.tower).all())
     changed = 0
     if "released_pos" in final:
@@ -163,7 +165,7 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
         "all_constraints": 100.0 * np.mean((strict | ~valid).all(-1)),
         "tower": 100.0 * tower.mean() if is_stacking else None,
         "placements_per_episode": float(np.mean(final["placements"])),
-        "SPL": placement_spl(episodes, final),
+        "SPL": placement_spl(episodes, final, strict, tower),
         "settle_changed": changed,
         "seconds": float(seconds),
     }

@@ -93,7 +93,7 @@ def _spl_oracle(success, p, l):
 @given(st.lists(st.tuples(st.booleans(), st.integers(0, 100), st.integers(0, 100)),
                 min_size=1, max_size=30))
 def test_spl_against_a_plain_loop(cases):
-    from envs.gridworld.metrics import spl
+    from diffplan.metrics import spl
 
     success, p, l = map(list, zip(*cases))
     value = spl(success, p, l)

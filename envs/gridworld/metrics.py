@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from diffplan.metrics import precision_recall_f1
+from diffplan.metrics import precision_recall_f1, spl
 
 
 def executed_cells(positions, steps, size: int):
@@ -39,17 +39,6 @@ def final_positions(positions, steps):
     """int (N, 2): the agent's cell after its last move."""
     positions = np.asarray(positions)
     return positions[np.arange(len(positions)), np.asarray(steps)]
-
-
-def spl(success, agent_moves, expert_moves) -> float:
-    """Success weighted by path length in [0, 1]: mean of S_i * l_i / max(p_i, l_i).
-    success bool (N,); agent_moves p int (N,); expert_moves l int (N,) (>= 0; an episode with
-    l = 0 counts 1 if it succeeded)."""
-    success = np.asarray(success, bool)
-    p = np.asarray(agent_moves, np.float64)
-    l = np.asarray(expert_moves, np.float64)
-    ratio = np.where(l > 0, l / np.maximum(np.maximum(p, l), 1e-9), 1.0)
-    return float(np.mean(np.where(success, ratio, 0.0)))
 
 
 def trajectory_metrics(positions, steps, target, expert_path, reference=None,
