@@ -95,3 +95,36 @@ def test_path_target_is_a_shortest_path_through_the_reference(examples_fn, seed)
                 left_expert += not ep.expert_path[i][agent] or not np.array_equal(
                     visited, visited & ep.expert_path[i])
     assert left_expert > 0  # detours do leave the expert path
+
+
+@settings(max_examples=30, deadline=None, database=None)
+@given(row=st.integers(0, 7), col=st.integers(0, 7))
+def test_near_agent_is_the_cell_and_its_four_neighbours(row, col):
+    from envs.gridworld.training import near_agent
+
+    agent = np.zeros((8, 8), np.float32)
+    agent[row, col] = 1
+    expected = np.zeros((8, 8), bool)
+    for dr, dc in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)):
+        r, c = row + dr, col + dc
+        if 0 <= r < 8 and 0 <= c < 8:
+            expected[r, c] = True
+    np.testing.assert_array_equal(np.asarray(near_agent(agent)), expected)
+
+
+def test_path_near_agent_weight_weighs_the_path_around_the_agent():
+    from envs.gridworld.training import make_batch_fn, near_agent
+
+    config = make_config("1o1g")
+    key = jax.random.PRNGKey(3)
+    plain = make_batch_fn(config)(key, 4)
+    weighted = make_batch_fn(config, path_near_agent_weight=4.0)(key, 4)
+    np.testing.assert_array_equal(np.asarray(plain.x0), np.asarray(weighted.x0))
+    near = np.stack([np.asarray(near_agent(x[..., 2])) for x in np.asarray(plain.x0)])
+    assert near.sum(axis=(1, 2)).min() >= 3  # the agent's cell and at least two neighbours
+    np.testing.assert_array_equal(np.asarray(weighted.loss_mask[..., 0]), 1 + 4.0 * near)
+    np.testing.assert_array_equal(np.asarray(plain.loss_mask[..., 0]), np.ones(near.shape))
+    np.testing.assert_array_equal(np.asarray(weighted.loss_mask[..., 1:]),
+                                  np.asarray(plain.loss_mask[..., 1:]))
+    with pytest.raises(ValueError, match="path_near_agent_weight"):
+        make_batch_fn(config, path_near_agent_weight=-1.0)

@@ -23,6 +23,9 @@ from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
 from envs.gridworld.task import NUM_GEN_CHANNELS, condition_from_observation
 
+AGENT_FEATURE = 2
+"""The condition channel of the "agent" feature (envs.gridworld.task's channel layout)."""
+
 TRAIN_STREAM = 0x7EA1
 TRAINING_MIXTURE = (("p_mo2g", 36), ("mo1g", 18), ("1o1g", 10))
 """Examples of each setting per batch of 64 (one denoiser serves the three settings)."""
@@ -129,9 +132,18 @@ def training_episode_keys(key, batch_size: int):
     return jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
 
 
+def near_agent(agent):
+    """bool (H, W): the agent's cell and its 4 neighbours, from the agent mask (H, W) (the
+    condition's "agent" feature); the cells psi_follow chooses the next move among."""
+    a = agent > 0
+    shifted = [a, jnp.pad(a[1:], ((0, 1), (0, 0))), jnp.pad(a[:-1], ((1, 0), (0, 0))),
+               jnp.pad(a[:, 1:], ((0, 0), (0, 1))), jnp.pad(a[:, :-1], ((0, 0), (1, 0)))]
+    return functools.reduce(jnp.logical_or, shifted)
+
+
 def make_batch_fn(config: GridConfig, goal_channel: bool = True,
                   goal_loss_seen_only: bool = False, detour_prob: float = 0.0,
-                  goal_loss_weight: float = 1.0):
+                  goal_loss_weight: float = 1.0, path_near_agent_weight: float = 0.0):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of examples of one setting.
 
     goal_channel=False trains without goal information (the paper's "- g" ablation: the goal
@@ -139,7 +151,12 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     to seen cells. detour_prob: the share of examples whose agent left the expert path by a
     few random moves (:func:`training_example`). goal_loss_weight: the weight of the goal and
     sub-goal channels in the loss relative to the path channel's (each is one cell of H x W).
+    path_near_agent_weight: extra weight of the path channel on the agent's cell and its 4
+    neighbours (:func:`near_agent`; 0: every cell weighs 1), where the plan's path decides the
+    next move of the paper's psi (``GridTask(psi_kind="follow")``).
     """
+    if not path_near_agent_weight >= 0:
+        raise ValueError(f"path_near_agent_weight must be >= 0, got {path_near_agent_weight}")
     if not goal_loss_weight > 0:
         raise ValueError(f"goal_loss_weight must be > 0, got {goal_loss_weight}")
     if not 0 <= detour_prob <= 1:
@@ -151,11 +168,12 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None, None))(
             keys, config, detour_prob)
         ones = jnp.ones(x0.shape[:-1], jnp.float32)
+        path = ones + path_near_agent_weight * jax.vmap(near_agent)(x0[..., AGENT_FEATURE])
         goal = goal_loss_weight * (seen.astype(jnp.float32) if goal_loss_seen_only else ones)
         subgoal = goal_loss_weight * ones
         if not goal_channel:
             goal, subgoal = jnp.zeros_like(goal), jnp.zeros_like(subgoal)
-        mask = jnp.stack([ones, goal, subgoal], axis=-1)
+        mask = jnp.stack([path, goal, subgoal], axis=-1)
         return Batch(x0=x0, tokens=tokens, loss_mask=mask)
 
     return batch_fn
@@ -194,7 +212,8 @@ class Recipe:
     """The grid world's training-data recipe (what ``experiments.compile_*`` --train uses).
 
     mixture: (setting, examples per batch of sum(counts)). detour_prob / goal_loss_weight: see
-    :func:`make_batch_fn`. goal_channel: False for the "- g" ablation. language: the phrasing
+    :func:`make_batch_fn`; so is path_near_agent_weight. goal_channel: False for the "- g"
+    ablation. language: the phrasing
     of the examples' instructions ("mixed": canonical half of the time, else one of the
     training paraphrases; the held-out phrasings never).
     """
@@ -204,11 +223,13 @@ class Recipe:
     goal_loss_weight: float = 3.0
     goal_channel: bool = True
     language: str = "mixed"
+    path_near_agent_weight: float = 0.0
 
     def batch_fn(self):
         return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
                                      detour_prob=self.detour_prob,
-                                     goal_loss_weight=self.goal_loss_weight)
+                                     goal_loss_weight=self.goal_loss_weight,
+                                     path_near_agent_weight=self.path_near_agent_weight)
 
     def init_batch(self):
         """Shapes of one example (every setting's examples have the same shapes)."""
@@ -220,7 +241,10 @@ class Recipe:
         return {"mixture": [list(m) for m in self.mixture], "goal_channel": self.goal_channel,
                 "detour_prob": self.detour_prob, "goal_loss_weight": self.goal_loss_weight,
                 "language": self.language, "num_gen_channels": NUM_GEN_CHANNELS,
-                "vocabulary": list(grammar.VOCAB)}
+                "vocabulary": list(grammar.VOCAB),
+                # Recorded only when used, so that checkpoints from before it existed match.
+                **({"path_near_agent_weight": self.path_near_agent_weight}
+                   if self.path_near_agent_weight else {})}
 
 
 # ------------------------------------------------------------------ the episodes of a run
