@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffplan.baselines.policies import BASELINES, LoadedPolicy, load_policy
+from diffplan.baselines.policies import BASELINES, DD_PARTS, LoadedPolicy, load_policy
 from diffplan.baselines.rollout import policy_rollout
 from envs.gridworld.agents import REFERENCE_AGENTS, REFERENCE_POLICIES
 from envs.gridworld.baselines import POLICY_WORLD
@@ -120,6 +120,22 @@ def policy_rows(policies: Sequence[LoadedPolicy], setting: str, seeds: tuple[int
     return rows
 
 
+def policy_directory(root: str, name: str, setting: str) -> str:
+    """Where baseline ``name``'s model for ``setting`` is: ``root/name/setting`` when the
+    baseline was trained one model per setting (``train_baselines --per-setting``; the paper
+    trains its baselines per setting), else the one model ``root/name`` that serves every
+    setting. Raises FileNotFoundError (naming the setting) when neither holds a checkpoint."""
+    from diffplan.checkpoint import latest_step
+
+    for directory in (os.path.join(root, name, setting), os.path.join(root, name)):
+        # The DD-style planner's checkpoints are its parts (diffusion/, inverse_dynamics/).
+        if latest_step(os.path.join(directory, DD_PARTS[0] if name == "dd" else "")) is not None:
+            return directory
+    raise FileNotFoundError(f"no {name} checkpoint for {setting} in {root} (neither "
+                            f"{name}/{setting}/ nor {name}/): train and ship it with "
+                            "`python -m experiments.train_baselines --ship`")
+
+
 def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_size: int,
                   progress: bool, *, checkpoint_root: str | None = None,
                   methods: Sequence[str] | None = None,
@@ -128,9 +144,10 @@ def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_siz
                   episodes_by_seed: dict | None = None) -> list[dict]:
     """:func:`policy_rows` of the baselines ("BC", "CQL", "DD-style"; methods among
     BASELINES, default all) from the shipped checkpoints under checkpoint_root (default
-    checkpoints/baselines). Raises FileNotFoundError when a checkpoint is missing."""
+    checkpoints/baselines; :func:`policy_directory` picks a baseline's model of the setting).
+    Raises FileNotFoundError when a checkpoint is missing."""
     root = CHECKPOINT_DIR if checkpoint_root is None else checkpoint_root
-    policies = [load_policy(name, os.path.join(root, name), POLICY_WORLD,
+    policies = [load_policy(name, policy_directory(root, name, setting), POLICY_WORLD,
                             dd_num_steps=dd_num_steps, dd_guidance=dd_guidance)
                 for name in (BASELINES if methods is None else methods)]
     return policy_rows(policies, setting, seeds, episodes, batch_size, progress,
@@ -200,9 +217,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
         parser.error(f"--dd-guidance must be >= 0, got {args.dd_guidance}")
     cli.check_output_file(parser, "--json", args.json)
     for m in methods:
-        if not os.path.isdir(os.path.join(args.checkpoint_root, m)):
-            fail(f"no {m} checkpoint in {args.checkpoint_root}: train and ship it with "
-                    "`python -m experiments.train_baselines --ship`")
+        for setting in settings:
+            try:
+                policy_directory(args.checkpoint_root, m, setting)
+            except FileNotFoundError as e:
+                fail(str(e))
     enable_compilation_cache()
     start = time.time()
     rows = []

@@ -4,12 +4,15 @@
     python -m experiments.train_baselines --ship --results results/baselines.json
 
 One model per baseline (``diffplan.baselines`` on ``envs.gridworld.baselines``' data) serves
-the three settings, trained on the planner's mixture of them (``TRAINING_MIXTURE``). Runs go
-to ``runs/baselines/<name>`` (``dd`` has ``diffusion/`` and ``inverse_dynamics/``) with a
+the three settings, trained on a mixture of them (``TRAINING_MIXTURE``); with
+``--per-setting`` a baseline gets one model per setting instead, trained on that setting's
+examples only (as the paper trains its baselines), in ``<name>/<setting>/``. Runs go to
+``runs/baselines/<name>`` (``dd`` has ``diffusion/`` and ``inverse_dynamics/``) with a
 checkpoint every few minutes; a killed run resumes exactly. ``--ship`` exports the finished
 runs as small evaluation checkpoints under ``checkpoints/baselines/<name>/`` with a NOTE.md
 each (command, seed, steps, training time, and the rows of ``experiments.baselines_eval``
-JSONs given with ``--results``).
+JSONs given with ``--results``); ``experiments.baselines_eval`` uses a setting's own model
+where there is one.
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import sys
 import time
 from typing import Sequence
@@ -96,6 +100,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                    help="write a checkpoint every N steps in every run (default: BC / CQL "
                         f"{b.checkpoint_every}, DD {d.checkpoint_every}: minutes on this CPU)")
+    p.add_argument("--per-setting", action="store_true",
+                   help="train one model per setting (DIR/<name>/<setting>, each on its "
+                        "setting's examples only, as the paper trains its baselines) instead "
+                        "of one on the mixture of the three; evaluation uses a setting's own "
+                        "model where there is one")
     p.add_argument("--no-train", action="store_true",
                    help="do not train (e.g. --ship finished runs only)")
     p.add_argument("--ship", action="store_true",
@@ -124,37 +133,64 @@ def configs(args):
                              **every))
 
 
+PAPER_SETTINGS = tuple(setting for setting, _ in TRAINING_MIXTURE)
+"""The settings of ``--per-setting`` models (those the baselines are evaluated in)."""
+
+
+def runs_of(name: str, run_dir: str, mixture=TRAINING_MIXTURE, per_setting: bool = False):
+    """((directory, mixture), ...): baseline name's training runs, run_dir/<name> on the
+    mixture, or with per_setting run_dir/<name>/<setting> on that setting alone."""
+    out = os.path.join(run_dir, name)
+    if not per_setting:
+        return ((out, mixture),)
+    return tuple((os.path.join(out, setting), ((setting, 1),)) for setting, _ in mixture)
+
+
 def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True, *,
-              mixture=TRAINING_MIXTURE, dd_model=dd.DDConfig()) -> dict:
-    """Trains the named baselines into run_dir/<name> on the mixture of settings; returns
-    {name: seconds of this call}."""
+              mixture=TRAINING_MIXTURE, dd_model=dd.DDConfig(), per_setting=False) -> dict:
+    """Trains the named baselines into run_dir/<name> on the mixture of settings (with
+    per_setting: one model per setting of the mixture, :func:`runs_of`); returns {name:
+    seconds of this call}."""
     seconds = {}
     for name in names:
         start = time.time()
-        out = os.path.join(run_dir, name)
-        if name == "bc":
-            gb.train_bc(out, bc_config, mixture=mixture, progress=progress)
-        elif name == "cql":
-            gb.train_cql(out, cql_config, mixture=mixture, progress=progress)
-        else:
-            gb.train_dd(os.path.join(out, "diffusion"), dd_config, dd_model, mixture, progress)
-            gb.train_inverse_dynamics(os.path.join(out, "inverse_dynamics"), dd_config,
-                                      mixture=mixture, progress=progress)
+        for out, data in runs_of(name, run_dir, mixture, per_setting):
+            if name == "bc":
+                gb.train_bc(out, bc_config, mixture=data, progress=progress)
+            elif name == "cql":
+                gb.train_cql(out, cql_config, mixture=data, progress=progress)
+            else:
+                gb.train_dd(os.path.join(out, "diffusion"), dd_config, dd_model, data,
+                            progress)
+                gb.train_inverse_dynamics(os.path.join(out, "inverse_dynamics"), dd_config,
+                                          mixture=data, progress=progress)
         seconds[name] = time.time() - start
         print(f"{name}: {seconds[name] / 60:.1f} min in this call", file=sys.stderr)
     return seconds
 
 
+def shipped_parts(name: str, run_dir: str) -> tuple[str, ...]:
+    """The parts of baseline name's runs under run_dir/<name> to export: "" (the one model),
+    or the per-setting models' "<setting>" when run_dir/<name>/<setting> exist; each with
+    "/diffusion" and "/inverse_dynamics" for dd."""
+    settings = [s for s in PAPER_SETTINGS if os.path.isdir(os.path.join(run_dir, name, s))]
+    return tuple(os.path.join(setting, part) for setting in settings or [""]
+                 for part in (DD_PARTS if name == "dd" else ("",)))
+
+
 def ship(names, run_dir, ship_dir, results, command, remarks=()) -> None:
-    """Exports run_dir/<name> to ship_dir/<name> and writes its NOTE.md."""
+    """Exports run_dir/<name> (or its per-setting runs) to ship_dir/<name> and writes its
+    NOTE.md; what ship_dir/<name> held before is replaced."""
     for name in names:
         summaries = []
-        for part in DD_PARTS if name == "dd" else ("",):
+        out = os.path.join(ship_dir, name)
+        if os.path.isdir(out):
+            shutil.rmtree(out)  # an export, remade from the runs below
+        for part in shipped_parts(name, run_dir):
             src, dst = (os.path.join(root, name, part) for root in (run_dir, ship_dir))
             os.makedirs(dst, exist_ok=True)
-            export_params(src, dst, ema=(name == "dd" and part == "diffusion"))
-            summaries.append((part, _summary(src)))
-        out = os.path.join(ship_dir, name)
+            export_params(src, dst, ema=(name == "dd" and part.endswith("diffusion")))
+            summaries.append((part.rstrip("/"), _summary(src)))
         write_note(out, name, METHOD_NAMES[name], summaries, results, command, remarks)
         print(f"shipped {out}")
 
@@ -176,10 +212,14 @@ def write_note(out_dir, name, method, summaries, results, command, remarks=()):
                      f"{s['batch_size']}, lr {s['lr']}; model {json.dumps(s['model_config'])}; "
                      f"{s['wall_time'] / 60:.1f} min of optimisation on a 2-core CPU")
         total += s["wall_time"]
+    per_setting = any(part.split("/")[0] in PAPER_SETTINGS for part, _ in summaries)
+    data = ("- one model per setting (in <setting>/), each trained on its setting's examples "
+            "only" if per_setting else
+            "- one model for the three settings (trained on the mixture: " + ", ".join(
+                f"{count} {setting}" for setting, count in TRAINING_MIXTURE) +
+            " examples per " + str(sum(c for _, c in TRAINING_MIXTURE)) + ")")
     lines += [f"- training time in all: {total / 60:.1f} min (optimisation, as logged; data "
-              "collection and compilation come on top)",
-              "- one model for the three settings (trained on the planner's mixture: 36 "
-              "P-MO2G, 18 MO1G, 10 1O1G examples per 64)",
+              "collection and compilation come on top)", data,
               "- exported with `python -m experiments.train_baselines --ship`",
               *[f"- {r}" for r in remarks], "",
               "## What it achieved (in percent, measured on executed trajectories)", ""]
@@ -236,7 +276,7 @@ def main(argv: Sequence[str] | None = None):
     if not args.no_train:
         try:
             seconds = train_all(names, args.run_dir, bc_config, cql_config, dd_config,
-                                not args.no_progress)
+                                not args.no_progress, per_setting=args.per_setting)
         except ConfigMismatchError as e:
             fail(str(e))
         print(f"trained {','.join(names)} in {sum(seconds.values()) / 60:.1f} min",

@@ -270,6 +270,41 @@ def test_tiny_baselines_evaluate_through_baseline_rows(tiny_ship):
         assert "tiny" in open(os.path.join(ship_dir, name, "NOTE.md")).read()
 
 
+def test_per_setting_models_are_trained_shipped_and_picked_per_setting(tmp_path):
+    """--per-setting: one BC per setting of the mixture, each on its setting's examples only,
+    shipped under bc/<setting>/ (replacing the one model shipped before) and picked by the
+    setting's rows; a setting without a model of its own is refused by name."""
+    from diffplan.checkpoint import read_metadata
+    from experiments import baselines_eval as be
+    from experiments import train_baselines as tb
+
+    run_dir, ship_dir = str(tmp_path / "runs"), str(tmp_path / "ship")
+    cfg = bc.BCTrainConfig(steps=2, batch_size=4, checkpoint_every=2, log_every=1)
+    tb.train_all(("bc",), run_dir, cfg, None, None, progress=False, mixture=TINY_MIXTURE)
+    tb.ship(("bc",), run_dir, ship_dir, results=[], command="pytest")
+    assert be.policy_directory(ship_dir, "bc", "mo1g") == os.path.join(ship_dir, "bc")
+    per_run = str(tmp_path / "per")
+    tb.train_all(("bc",), per_run, cfg, None, None, progress=False, mixture=TINY_MIXTURE,
+                 per_setting=True)
+    for setting, _ in TINY_MIXTURE:
+        meta = read_metadata(os.path.join(per_run, "bc", setting))
+        assert meta["train_config"]["mixture"] == [[setting, 1]]
+    tb.ship(("bc",), per_run, ship_dir, results=[], command="pytest")
+    note = open(os.path.join(ship_dir, "bc", "NOTE.md")).read()
+    assert "one model per setting" in note and "1o1g:" in note and "p_mo2g:" in note
+    for setting in ("1o1g", "p_mo2g"):
+        assert be.policy_directory(ship_dir, "bc", setting) == \
+            os.path.join(ship_dir, "bc", setting)
+    with pytest.raises(FileNotFoundError, match="bc checkpoint for mo1g"):
+        be.policy_directory(ship_dir, "bc", "mo1g")  # the one model was replaced
+    rows = be.baseline_rows("1o1g", (7,), 4, 4, False, checkpoint_root=ship_dir,
+                            methods=("bc",))
+    assert [r["method"] for r in rows] == ["BC"]
+    with pytest.raises(SystemExit):
+        be.main(["--settings", "mo1g", "--methods", "bc", "--checkpoint-root", ship_dir,
+                 "--episodes", "2", "--no-progress"])
+
+
 def test_baseline_rows_with_one_seed_and_the_executed_success(tiny_ship):
     from diffplan.baselines.policies import load_policy
     from experiments.baselines_eval import evaluate_policy
