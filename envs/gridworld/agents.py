@@ -44,7 +44,7 @@ from diffplan.baselines.policies import LoadedPolicy
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.baselines import instruction_slots
 from envs.gridworld.episode import OBSTACLE_CELL, compass_sector
-from envs.gridworld.task import _argmax_cell
+from envs.gridworld.task import AGENT_CHANNEL, _argmax_cell
 
 __all__ = ["REFERENCE_AGENTS", "REFERENCE_POLICIES", "sector_mask", "oracle_move",
            "searcher_move", "oracle_act", "searcher_act", "privileged"]
@@ -102,7 +102,7 @@ def searcher_move(condition, tokens):
     size = condition.shape[0]
     cells = jnp.round(condition[..., 0]).astype(jnp.int32)
     known_obstacle = condition[..., 1] > 0.5
-    agent = _first_cell(condition[..., 2] > 0.5)
+    agent = _first_cell(condition[..., AGENT_CHANNEL] > 0.5)
     visited = condition[..., 3] > 0.5
     unseen = condition[..., 4] < 0.5
     ref_token, target_token, dir_token = instruction_slots(tokens)

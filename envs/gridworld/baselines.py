@@ -38,7 +38,7 @@ from diffplan.baselines.policies import PolicyWorld
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import OBSTACLE_CELL, generate
-from envs.gridworld.task import NUM_COND_CHANNELS, condition_from_observation
+from envs.gridworld.task import AGENT_CHANNEL, NUM_COND_CHANNELS, condition_from_observation
 from envs.gridworld.training import (TRAINING_MIXTURE, state_along_expert,
                                      training_episode_keys)
 
@@ -283,7 +283,7 @@ def frame(condition):
     """float32 (H * W,): the DD-style planner's state of condition channels (H, W, C): each
     cell's token id as seen so far (unseen, empty, obstacle, object class) mapped linearly to
     [-1, 0.5], and AGENT_VALUE on the agent's cell."""
-    return _frame(condition[..., 0], condition[..., 2] > 0.5)
+    return _frame(condition[..., 0], condition[..., AGENT_CHANNEL] > 0.5)
 
 
 def agent_plan(trajectory, condition):

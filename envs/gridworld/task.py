@@ -47,6 +47,8 @@ from envs.gridworld.episode import OBSTACLE_CELL, Episode
 
 NUM_COND_CHANNELS = 1 + env.NUM_FEATURES
 NUM_GEN_CHANNELS = 3
+AGENT_CHANNEL = 2
+"""The condition channel marking the agent's cell (the "agent" feature)."""
 PATH_CHANNEL, GOAL_CHANNEL, SUBGOAL_CHANNEL = (NUM_COND_CHANNELS, NUM_COND_CHANNELS + 1,
                                                NUM_COND_CHANNELS + 2)
 AVOID_GOAL_COST = 50.0

@@ -21,10 +21,7 @@ from diffplan.language import check_training_language
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
-from envs.gridworld.task import NUM_GEN_CHANNELS, condition_from_observation
-
-AGENT_FEATURE = 2
-"""The condition channel of the "agent" feature (envs.gridworld.task's channel layout)."""
+from envs.gridworld.task import AGENT_CHANNEL, NUM_GEN_CHANNELS, condition_from_observation
 
 TRAIN_STREAM = 0x7EA1
 TRAINING_MIXTURE = (("p_mo2g", 36), ("mo1g", 18), ("1o1g", 10))
@@ -133,12 +130,15 @@ def training_episode_keys(key, batch_size: int):
 
 
 def near_agent(agent):
-    """bool (H, W): the agent's cell and its 4 neighbours, from the agent mask (H, W) (the
-    condition's "agent" feature); the cells psi_follow chooses the next move among."""
-    a = agent > 0
-    shifted = [a, jnp.pad(a[1:], ((0, 1), (0, 0))), jnp.pad(a[:-1], ((1, 0), (0, 0))),
-               jnp.pad(a[:, 1:], ((0, 0), (0, 1))), jnp.pad(a[:, :-1], ((0, 0), (1, 0)))]
-    return functools.reduce(jnp.logical_or, shifted)
+    """bool (H, H): the agent's cell and its 4 neighbours (``bfs.neighbours``, those on the
+    grid), from the agent mask (H, H) (the condition's agent channel); the cells psi_follow
+    chooses the next move among."""
+    size = agent.shape[0]
+    flat = jnp.argmax(agent.ravel() > 0)
+    cell = jnp.stack([flat // size, flat % size])
+    cells, inside = bfs.neighbours(cell, agent.shape)
+    return bfs.positions_to_mask(jnp.concatenate([cell[None], cells]), size,
+                                 jnp.concatenate([jnp.array([True]), inside]))
 
 
 def make_batch_fn(config: GridConfig, goal_channel: bool = True,
@@ -168,7 +168,7 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None, None))(
             keys, config, detour_prob)
         ones = jnp.ones(x0.shape[:-1], jnp.float32)
-        path = ones + path_near_agent_weight * jax.vmap(near_agent)(x0[..., AGENT_FEATURE])
+        path = ones + path_near_agent_weight * jax.vmap(near_agent)(x0[..., AGENT_CHANNEL])
         goal = goal_loss_weight * (seen.astype(jnp.float32) if goal_loss_seen_only else ones)
         subgoal = goal_loss_weight * ones
         if not goal_channel:
@@ -212,10 +212,9 @@ class Recipe:
     """The grid world's training-data recipe (what ``experiments.compile_*`` --train uses).
 
     mixture: (setting, examples per batch of sum(counts)). detour_prob / goal_loss_weight: see
-    :func:`make_batch_fn`; so is path_near_agent_weight. goal_channel: False for the "- g"
-    ablation. language: the phrasing
-    of the examples' instructions ("mixed": canonical half of the time, else one of the
-    training paraphrases; the held-out phrasings never).
+    :func:`make_batch_fn`, and so is path_near_agent_weight. goal_channel: False for the "- g"
+    ablation. language: the phrasing of the examples' instructions ("mixed": canonical half of
+    the time, else one of the training paraphrases; the held-out phrasings never).
     """
 
     mixture: tuple = TRAINING_MIXTURE
