@@ -11,8 +11,8 @@ examples only (as the paper trains its baselines), in ``<name>/<setting>/``. Run
 checkpoint every few minutes; a killed run resumes exactly. ``--ship`` exports the finished
 runs as small evaluation checkpoints under ``checkpoints/baselines/<name>/`` with a NOTE.md
 each (command, seed, steps, training time, and the rows of ``experiments.baselines_eval``
-JSONs given with ``--results``); ``experiments.baselines_eval`` uses a setting's own model
-where there is one.
+JSONs given with ``--results``; ``experiments.baselines_ship``); ``experiments.baselines_eval``
+uses a setting's own model where there is one.
 """
 from __future__ import annotations
 
@@ -20,45 +20,22 @@ import argparse
 import json
 import os
 import shlex
-import shutil
 import sys
 import time
 from typing import Sequence
 
 from diffplan.baselines import bc, cql, dd
-from diffplan.baselines.policies import DD_PARTS, METHOD_NAMES, export_params
-from diffplan.checkpoint import read_metadata
 from diffplan.jax_cache import enable_compilation_cache
 from diffplan.train import ConfigMismatchError
 from envs.gridworld import baselines as gb
 from envs.gridworld.training import TRAINING_MIXTURE
 from experiments import cli
-from experiments.gridworld_eval import format_table
+from experiments.baselines_ship import ship
 from experiments.harness import CHECKPOINT_ROOT, REPO_ROOT, fail
 
 DEFAULT_RUN_DIR = os.path.join(REPO_ROOT, "runs", "baselines")
 SHIP_DIR = os.path.join(CHECKPOINT_ROOT, "baselines")
 NAMES = ("bc", "cql", "dd")
-
-DESCRIPTIONS = {
-    "bc": "Behaviour cloning (the paper's BC, appendix): two 3x3 conv layers of 16 channels, "
-          "two dense layers of 40 units with the one-hot goal vector concatenated before the "
-          "second, a 4-way move head; cross-entropy on the expert's moves along expert "
-          "shortest paths; greedy.",
-    "cql": "Conservative Q-learning (the paper's CQL, appendix): the BC network with 4 "
-           "Q-values, trained offline on a 300k replay buffer of expert epsilon-greedy "
-           "transitions (epsilon 1 -> 0.01 over 10k frames), reward minus the remaining "
-           "instructed distance, double DQN + CQL(H) (alpha 1), gamma 0.99, tau 0.001, "
-           "lr 1e-3; greedy.",
-    "dd": "Decision-Diffuser-style planner (the paper's DD): diffusion over 16-frame "
-          "trajectories of the flattened 256-cell grid with Diffuser's 1-D temporal UNet "
-          "(widths 32/64) conditioned on the goal vector, frame 0 (the current "
-          "observation) in-painted, an inverse dynamics MLP turning (frame 0, frame 1) into "
-          "the move; re-plans every move. Beyond Decision Diffuser: the clean trajectory is "
-          "predicted as frame 0 plus a change through a 256-unit head, the cells that change "
-          "weigh 51x in the loss (see diffplan/baselines/dd.py for why).",
-}
-
 
 def _json_file(path: str) -> dict:
     """argparse type: the results JSON (contract 2) at path."""
@@ -133,10 +110,6 @@ def configs(args):
                              **every))
 
 
-PAPER_SETTINGS = tuple(setting for setting, _ in TRAINING_MIXTURE)
-"""The settings of ``--per-setting`` models (those the baselines are evaluated in)."""
-
-
 def runs_of(name: str, run_dir: str, mixture=TRAINING_MIXTURE, per_setting: bool = False):
     """((directory, mixture), ...): baseline name's training runs, run_dir/<name> on the
     mixture, or with per_setting run_dir/<name>/<setting> on that setting alone."""
@@ -167,77 +140,6 @@ def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True, *
         seconds[name] = time.time() - start
         print(f"{name}: {seconds[name] / 60:.1f} min in this call", file=sys.stderr)
     return seconds
-
-
-def shipped_parts(name: str, run_dir: str) -> tuple[str, ...]:
-    """The parts of baseline name's runs under run_dir/<name> to export: "" (the one model),
-    or the per-setting models' "<setting>" when run_dir/<name>/<setting> exist; each with
-    "/diffusion" and "/inverse_dynamics" for dd."""
-    settings = [s for s in PAPER_SETTINGS if os.path.isdir(os.path.join(run_dir, name, s))]
-    return tuple(os.path.join(setting, part) for setting in settings or [""]
-                 for part in (DD_PARTS if name == "dd" else ("",)))
-
-
-def ship(names, run_dir, ship_dir, results, command, remarks=()) -> None:
-    """Exports run_dir/<name> (or its per-setting runs) to ship_dir/<name> and writes its
-    NOTE.md; what ship_dir/<name> held before is replaced."""
-    for name in names:
-        summaries = []
-        out = os.path.join(ship_dir, name)
-        if os.path.isdir(out):
-            shutil.rmtree(out)  # an export, remade from the runs below
-        for part in shipped_parts(name, run_dir):
-            src, dst = (os.path.join(root, name, part) for root in (run_dir, ship_dir))
-            os.makedirs(dst, exist_ok=True)
-            export_params(src, dst, ema=(name == "dd" and part.endswith("diffusion")))
-            summaries.append((part.rstrip("/"), _summary(src)))
-        write_note(out, name, METHOD_NAMES[name], summaries, results, command, remarks)
-        print(f"shipped {out}")
-
-
-def _summary(train_dir) -> dict:
-    meta = read_metadata(train_dir)
-    tc = meta.get("train_config", {})
-    return {"step": meta.get("step"), **{k: tc.get(k) for k in ("seed", "batch_size", "lr")},
-            "wall_time": meta.get("wall_time", float("nan")), "model_config": meta["model_config"]}
-
-
-def write_note(out_dir, name, method, summaries, results, command, remarks=()):
-    lines = [f"# {name}", "", DESCRIPTIONS[name], "", "## How it was made", "",
-             f"- command: `{command}`"]
-    total = 0.0
-    for part, s in summaries:
-        label = f"{part}: " if part else ""
-        lines.append(f"- {label}training seed {s['seed']}; {s['step']} steps of batch "
-                     f"{s['batch_size']}, lr {s['lr']}; model {json.dumps(s['model_config'])}; "
-                     f"{s['wall_time'] / 60:.1f} min of optimisation on a 2-core CPU")
-        total += s["wall_time"]
-    per_setting = any(part.split("/")[0] in PAPER_SETTINGS for part, _ in summaries)
-    data = ("- one model per setting (in <setting>/), each trained on its setting's examples "
-            "only" if per_setting else
-            "- one model for the three settings (trained on the mixture: " + ", ".join(
-                f"{count} {setting}" for setting, count in TRAINING_MIXTURE) +
-            " examples per " + str(sum(c for _, c in TRAINING_MIXTURE)) + ")")
-    lines += [f"- training time in all: {total / 60:.1f} min (optimisation, as logged; data "
-              "collection and compilation come on top)", data,
-              "- exported with `python -m experiments.train_baselines --ship`",
-              *[f"- {r}" for r in remarks], "",
-              "## What it achieved (in percent, measured on executed trajectories)", ""]
-    for result in results:
-        rows = [r for r in result["rows"] if r["method"] == method]
-        if not rows:
-            continue
-        seeds = ",".join(map(str, result.get("seeds", [result["seed"]])))
-        dd_note = (f"; {result.get('dd_num_steps')} DDIM steps per move, guidance "
-                   f"{result.get('dd_guidance')}" if name == "dd" else "")
-        lines += [f"`python -m experiments.baselines_eval --episodes {result['episodes']} "
-                  f"--seeds {seeds}` ({result.get('machine', '')}{dd_note}):", "", "```"]
-        lines += ["setting  " + format_table(rows).splitlines()[0]]
-        for r in rows:
-            lines.append(f"{r['setting']:<8} " + format_table([r]).splitlines()[2])
-        lines += ["```", ""]
-    with open(os.path.join(out_dir, "NOTE.md"), "w") as f:
-        f.write("\n".join(lines))
 
 
 def _default_command(argv) -> str:

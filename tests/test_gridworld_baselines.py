@@ -307,7 +307,7 @@ def test_per_setting_models_are_trained_shipped_and_picked_per_setting(tmp_path)
 
 def test_baseline_rows_with_one_seed_and_the_executed_success(tiny_ship):
     from diffplan.baselines.policies import load_policy
-    from experiments.baselines_eval import evaluate_policy
+    from experiments.policy_eval import evaluate_policy
 
     _, ship_dir, _ = tiny_ship
     policy = load_policy("bc", os.path.join(ship_dir, "bc"), gb.POLICY_WORLD)
