@@ -257,10 +257,13 @@ def test_training_state_of_the_older_format_is_refused_in_one_line(tmp_path, sta
 
 SHIPPED_PARAMS_SHA256 = {
     # SHA-256 over (key path, dtype, shape, bytes) of every array load_params_for_eval returns,
-    # measured with the loader before the checkpoint code became generic over pytrees.
+    # measured with the loader before the checkpoint code became generic over pytrees (the
+    # per-setting BCs: with the loader of the commit that shipped them).
     "compile_gridworld": "c509cb4abaf8cf405181d1316a84f9ab4e1421adcb7f91d5dfc479dedeb61ed7",
     "kuka": "f6d5bf148b8ec4c17b0ade4fa540bdc324ccc6d51ab65a7a2c56539a2e89776d",
-    "baselines/bc": "7acbd79d6c5d12b9b3498706bd42d5c454085dcd28e0f72714ab064e289c5da2",
+    "baselines/bc/1o1g": "4b594fce64a1db88373af856742d34b3eb8c0478f3baa8f970a444d719757699",
+    "baselines/bc/mo1g": "7d0ab37b07ed4fd8a7ccee4a5c8ae069af021b7db70988cbb7ac8b3c26d31b1e",
+    "baselines/bc/p_mo2g": "ac0172ff639bf9eb5bbee963c1990877cf5d85fe63bdf468e8d4d6f457a041d5",
     "baselines/cql": "000052dbdf6b97d44d4070c41040b5895af4ae5035e82a092869d1ed85b56e76",
     "baselines/dd/diffusion": "58c3dd84d47decea6ec0cd8cd447e88147c27b912ce675de2d851a93d862e46e",
     "baselines/dd/inverse_dynamics":
