@@ -1,8 +1,9 @@
-"""Ships the trained CompILE baselines: exports the runs of ``experiments.train_baselines``
-as small evaluation checkpoints (``diffplan.baselines.policies.export_params``) under
-``checkpoints/baselines/<name>/`` (per-setting models in ``<name>/<setting>/``) and writes a
-NOTE.md beside each: what the baseline is, the command, seed, steps, training time, and the
-rows of ``experiments.baselines_eval`` JSONs.
+"""Ships the trained baselines: exports the runs of ``experiments.train_baselines`` as small
+evaluation checkpoints (``diffplan.baselines.policies.export_params``) under
+``checkpoints/baselines/<name>/`` (per-setting models in ``<name>/<setting>/``; the Kuka
+world's under ``checkpoints/baselines/kuka/<name>/``) and writes a NOTE.md beside each: what
+the baseline is, the command, seed, steps, training time, and its rows of the results JSONs
+(``experiments.baselines_eval``'s, or a Kuka CLI's).
 """
 from __future__ import annotations
 
@@ -48,9 +49,10 @@ def shipped_parts(name: str, run_dir: str) -> tuple[str, ...]:
                  for part in (DD_PARTS if name == "dd" else ("",)))
 
 
-def ship(names, run_dir, ship_dir, results, command, remarks=()) -> None:
+def ship(names, run_dir, ship_dir, results, command, remarks=(), world: str = "gridworld"):
     """Exports run_dir/<name> (or its per-setting runs) to ship_dir/<name> and writes its
-    NOTE.md; what ship_dir/<name> held before is replaced."""
+    NOTE.md (world: whose baselines they are); what ship_dir/<name> held before is
+    replaced."""
     for name in names:
         summaries = []
         out = os.path.join(ship_dir, name)
@@ -61,7 +63,7 @@ def ship(names, run_dir, ship_dir, results, command, remarks=()) -> None:
             os.makedirs(dst, exist_ok=True)
             export_params(src, dst, ema=(name == "dd" and part.endswith("diffusion")))
             summaries.append((part.rstrip("/"), _summary(src)))
-        write_note(out, name, METHOD_NAMES[name], summaries, results, command, remarks)
+        write_note(out, name, METHOD_NAMES[name], summaries, results, command, remarks, world)
         print(f"shipped {out}")
 
 
@@ -72,8 +74,60 @@ def _summary(train_dir) -> dict:
             "wall_time": meta.get("wall_time", float("nan")), "model_config": meta["model_config"]}
 
 
-def write_note(out_dir, name, method, summaries, results, command, remarks=()):
-    lines = [f"# {name}", "", DESCRIPTIONS[name], "", "## How it was made", "",
+KUKA_DESCRIPTIONS = {
+    "bc": "Behaviour cloning in the Kuka world (the paper's Table 2 BC, appendix): the CompILE "
+          "network (two 3x3 conv layers of 16 channels, two dense layers of 40 units with the "
+          "multi-hot constraint vector concatenated before the second) on the planner's "
+          "condition channels, the task decomposed into single pick-and-place moves: two "
+          "576-way heads choose the pick cell and the place cell; cross-entropy on the "
+          "training expert's moves in the states between placements; greedy; executed by the "
+          "same primitive and physics, the block carried around the base "
+          "(envs/kuka/baselines.py).",
+}
+"""What each Kuka baseline is (its NOTE.md's first paragraph)."""
+KUKA_DATA = ("- trained on the Kuka denoiser's task specs (the four Table 2 columns, canonical "
+             "and training-paraphrase instructions, the same share each; envs.kuka.training."
+             "SPECS), states drawn as the denoiser's training draws them")
+
+
+def _kuka_results(name, method, result) -> list[str]:
+    """The NOTE.md lines of a Kuka CLI's results (its rows of the baseline)."""
+    from experiments.kuka_eval import format_table as kuka_table
+
+    rows = [r for r in result["rows"] if r["method"].startswith(method + ",")]
+    if not rows:
+        return []
+    seeds = ",".join(map(str, result.get("seeds", [result["seed"]])))
+    return [f"`python -m experiments.{result['experiment']} --baselines {name} --episodes "
+            f"{result['episodes']} --seeds {seeds} --language {result['language']}` "
+            f"({result.get('machine', '')}; strict SR on the poses after "
+            f"{result.get('settle_seconds', 0):g} s at rest):", "", "```",
+            kuka_table(rows), "```", ""]
+
+
+def _grid_results(name, method, result) -> list[str]:
+    """The NOTE.md lines of an experiments.baselines_eval result (its rows of the baseline)."""
+    rows = [r for r in result["rows"] if r["method"] == method]
+    if not rows:
+        return []
+    seeds = ",".join(map(str, result.get("seeds", [result["seed"]])))
+    dd_note = (f"; {result.get('dd_num_steps')} DDIM steps per move, guidance "
+               f"{result.get('dd_guidance')}" if name == "dd" else "")
+    lines = [f"`python -m experiments.baselines_eval --episodes {result['episodes']} "
+             f"--seeds {seeds}` ({result.get('machine', '')}{dd_note}):", "", "```"]
+    lines += ["setting  " + format_table(rows).splitlines()[0]]
+    for r in rows:
+        lines.append(f"{r['setting']:<8} " + format_table([r]).splitlines()[2])
+    return lines + ["```", ""]
+
+
+def write_note(out_dir, name, method, summaries, results, command, remarks=(),
+               world: str = "gridworld"):
+    """out_dir/NOTE.md of a shipped baseline: what it is, how it was made (summaries: (part,
+    _summary) of each exported run), what it achieved (its rows of the results JSONs)."""
+    kuka = world == "kuka"
+    lines = [f"# {name}" + (" (Kuka)" if kuka else ""), "",
+             (KUKA_DESCRIPTIONS if kuka else DESCRIPTIONS)[name], "", "## How it was made", "",
              f"- command: `{command}`"]
     total = 0.0
     for part, s in summaries:
@@ -83,28 +137,18 @@ def write_note(out_dir, name, method, summaries, results, command, remarks=()):
                      f"{s['wall_time'] / 60:.1f} min of optimisation on a 2-core CPU")
         total += s["wall_time"]
     per_setting = any(part.split("/")[0] in PAPER_SETTINGS for part, _ in summaries)
-    data = ("- one model per setting (in <setting>/), each trained on its setting's examples "
+    mixture = ", ".join(f"{count} {setting}" for setting, count in TRAINING_MIXTURE)
+    data = (KUKA_DATA if kuka else
+            "- one model per setting (in <setting>/), each trained on its setting's examples "
             "only" if per_setting else
-            "- one model for the three settings (trained on the mixture: " + ", ".join(
-                f"{count} {setting}" for setting, count in TRAINING_MIXTURE) +
-            " examples per " + str(sum(c for _, c in TRAINING_MIXTURE)) + ")")
+            f"- one model for the three settings (trained on the mixture: {mixture} examples "
+            f"per {sum(c for _, c in TRAINING_MIXTURE)})")
     lines += [f"- training time in all: {total / 60:.1f} min (optimisation, as logged; data "
               "collection and compilation come on top)", data,
               "- exported with `python -m experiments.train_baselines --ship`",
               *[f"- {r}" for r in remarks], "",
               "## What it achieved (in percent, measured on executed trajectories)", ""]
     for result in results:
-        rows = [r for r in result["rows"] if r["method"] == method]
-        if not rows:
-            continue
-        seeds = ",".join(map(str, result.get("seeds", [result["seed"]])))
-        dd_note = (f"; {result.get('dd_num_steps')} DDIM steps per move, guidance "
-                   f"{result.get('dd_guidance')}" if name == "dd" else "")
-        lines += [f"`python -m experiments.baselines_eval --episodes {result['episodes']} "
-                  f"--seeds {seeds}` ({result.get('machine', '')}{dd_note}):", "", "```"]
-        lines += ["setting  " + format_table(rows).splitlines()[0]]
-        for r in rows:
-            lines.append(f"{r['setting']:<8} " + format_table([r]).splitlines()[2])
-        lines += ["```", ""]
+        lines += (_kuka_results if kuka else _grid_results)(name, method, result)
     with open(os.path.join(out_dir, "NOTE.md"), "w") as f:
         f.write("\n".join(lines))

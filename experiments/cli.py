@@ -132,3 +132,21 @@ def add_training_flags(parser: argparse.ArgumentParser, *, training_name: str, s
     parser.add_argument("--model-size", choices=sorted(model_sizes), default=None,
                         help="denoiser size for --train ('tiny' is for smoke tests; default "
                              "'default')")
+
+
+def check_baselines(parser: argparse.ArgumentParser, names: str | None, known, root: str,
+                    make: str = "python -m experiments.train_baselines --ship"):
+    """The --baselines names (distinct, among known, each with a shipped checkpoint directory
+    root/<name>, which the command ``make`` ships); () without the flag."""
+    if names is None:
+        return ()
+    chosen = tuple(n.strip() for n in names.split(",") if n.strip())
+    bad = [n for n in chosen if n not in known]
+    if bad or not chosen or len(set(chosen)) != len(chosen):
+        parser.error(f"--baselines must be distinct names of {','.join(known)}, got "
+                     f"{names!r}")
+    missing = [n for n in chosen if not os.path.isdir(os.path.join(root, n))]
+    if missing:
+        parser.error(f"no shipped baseline checkpoint for {','.join(missing)} under {root}: "
+                     f"make them with `{make}`")
+    return chosen

@@ -144,18 +144,7 @@ def check_args(parser, args, spec):
 
 def check_baselines(parser, names: str | None) -> tuple[str, ...]:
     """The --baselines names (distinct, known, with a shipped checkpoint); () without it."""
-    if names is None:
-        return ()
     from diffplan.baselines.policies import BASELINES
 
-    chosen = tuple(n.strip() for n in names.split(",") if n.strip())
-    bad = [n for n in chosen if n not in BASELINES]
-    if bad or not chosen or len(set(chosen)) != len(chosen):
-        parser.error(f"--baselines must be distinct names of {','.join(BASELINES)}, got "
-                     f"{names!r}")
-    root = os.path.join(harness.CHECKPOINT_ROOT, "baselines")
-    missing = [n for n in chosen if not os.path.isdir(os.path.join(root, n))]
-    if missing:
-        parser.error(f"no shipped baseline checkpoint for {','.join(missing)} under {root}: "
-                     "make them with `python -m experiments.train_baselines --ship`")
-    return chosen
+    return cli.check_baselines(parser, names, BASELINES,
+                               os.path.join(harness.CHECKPOINT_ROOT, "baselines"))

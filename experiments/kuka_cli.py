@@ -11,6 +11,7 @@ step counts) was made on the validation seed 1000; the README reports the evalua
 """
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import time
@@ -42,39 +43,71 @@ def _denoiser(kind: str, args, progress: bool):
     return checkpoint, train_seconds, ks.load_checked(checkpoint, args.num_steps, kind)
 
 
+def _columns(args, seeds, specs, episodes, run, label):
+    """{spec: row}, {spec: (episodes, final)} of one actor in every column, pooled over the
+    seeds: run(episodes, seed) -> final physical states; label(spec) -> the row's method."""
+    rows, finals = {}, {}
+    for spec in specs:
+        per_seed, parts = {}, []
+        for seed in seeds:
+            t0 = time.time()
+            eps = episodes[spec, seed]
+            final = run(eps, seed)
+            per_seed[seed] = ke.column_metrics("", "", eps, final, time.time() - t0)
+            parts.append(final)
+        final = {k: np.concatenate([d[k] for d in parts]) for k in parts[0]}
+        eps = harness.concat_trees([episodes[spec, s] for s in seeds])
+        row = ke.column_metrics(label(spec), "multi" if spec.multi else "single", eps, final,
+                                sum(r["seconds"] for r in per_seed.values()))
+        row.update(language=spec.language)
+        if len(seeds) > 1:
+            ke.add_intervals(row, ke.episode_counts(eps, final), per_seed)
+        rows[spec], finals[spec] = row, (eps, final)
+    return rows, finals
+
+
 def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
     """{(mode, spec): row} and {(mode, spec): (episodes, final)} of every mode and column,
-    pooled over the seeds (mode None: the expert)."""
+    pooled over the seeds (mode None: the expert), then of every --baselines policy (mode
+    its method name)."""
     rows, finals = {}, {}
     # One jitted rollout for every mode, column and seed: a fresh jax.jit per call would trace
     # and lower the MJX program again each time (~15-20 s each).
     run = harness.rollout_fn(task) if denoiser is not None else None
     for mode in modes:
-        planner = None
         if denoiser is not None:
             from diffplan.planner import Planner, PlannerConfig
             planner = Planner(denoiser, PlannerConfig(mode=mode, num_steps=args.num_steps))
+            act = functools.partial(ke.run_planner, task, planner, batch=args.batch_size,
+                                    bar=bar, run=run, settle=args.settle)
+        elif args.policy == "expert":
+            def act(eps, seed):
+                return ke.run_expert(eps, args.batch_size, bar, settle=args.settle)
+        else:  # a baseline
+            _, act = _baseline_actor(args, args.policy, bar)
+        by_spec = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
+            mode, spec.multi, spec.language, ks.policy_name(args.policy)))
         for spec in specs:
-            per_seed, parts = {}, []
-            for seed in seeds:
-                t0 = time.time()
-                eps = episodes[spec, seed]
-                final = (ke.run_planner(task, planner, eps, seed, args.batch_size, bar, run=run,
-                                        settle=args.settle)
-                         if planner is not None
-                         else ke.run_expert(eps, args.batch_size, bar, settle=args.settle))
-                per_seed[seed] = ke.column_metrics("", "", eps, final, time.time() - t0)
-                parts.append(final)
-            final = {k: np.concatenate([d[k] for d in parts]) for k in parts[0]}
-            eps = harness.concat_trees([episodes[spec, s] for s in seeds])
-            row = ke.column_metrics(ks.label(mode, spec.multi, spec.language, args.policy),
-                                    "multi" if spec.multi else "single", eps, final,
-                                    sum(r["seconds"] for r in per_seed.values()))
-            row.update(mode=mode, language=spec.language)
-            if len(seeds) > 1:
-                ke.add_intervals(row, ke.episode_counts(eps, final), per_seed)
-            rows[mode, spec], finals[mode, spec] = row, (eps, final)
+            rows[mode, spec], finals[mode, spec] = by_spec[0][spec], by_spec[1][spec]
+            rows[mode, spec]["mode"] = mode
+    for name in args.baselines:
+        method, act = _baseline_actor(args, name, bar)
+        by_spec = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
+            None, spec.multi, spec.language, method))
+        for spec in specs:
+            rows[method, spec] = dict(by_spec[0][spec], mode=None)
+            finals[method, spec] = by_spec[1][spec]
     return rows, finals
+
+
+def _baseline_actor(args, name: str, bar):
+    """(method, run(episodes, seed) -> final states) of the shipped Kuka baseline name."""
+    from envs.kuka.task import KukaTask
+    from experiments import kuka_baselines as kbl
+
+    (policy,) = kbl.load_baselines((name,))
+    return policy.method, functools.partial(kbl.run_policy, KukaTask(), policy,
+                                            batch=args.batch_size, bar=bar, settle=args.settle)
 
 
 def _print_summary(kind, args, seeds, checkpoint, all_rows) -> None:
@@ -161,7 +194,8 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
              for multi in (False, True)]
     episodes = {(spec, seed): ke.generate_episodes(spec, args.episodes, seed, args.batch_size)
                 for spec in specs for seed in seeds}
-    bar = tqdm(total=args.episodes * len(seeds) * len(specs) * len(modes),
+    actors = len(modes) + len(args.baselines)
+    bar = tqdm(total=args.episodes * len(seeds) * len(specs) * actors,
                desc=f"kuka {kind} ({args.policy})", unit="ep", disable=not progress,
                file=sys.stderr, leave=False, dynamic_ncols=True)
     start = time.time()
@@ -169,7 +203,8 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     bar.close()
     main_mode, main_language = modes[0], languages[0]
     main_specs = [s for s in specs if s.language == main_language]
-    main_name = args.policy if not planner_policy else f"planner {ks.METHOD_NAMES[main_mode]}"
+    main_name = (ks.policy_name(args.policy) if not planner_policy
+                 else f"planner {ks.METHOD_NAMES[main_mode]}")
     main_row = ke.pooled_row(main_name + (f", {main_language}" if main_language != "canonical"
                                           else ""),
                              [rows[main_mode, s] for s in main_specs],
@@ -177,12 +212,15 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     if len(seeds) > 1:
         counts = [ke.episode_counts(*finals[main_mode, s]) for s in main_specs]
         ke.add_intervals(main_row, tuple(np.concatenate(c) for c in zip(*counts)))
-    all_rows = [main_row] + [rows[m, s] for m in modes for s in specs]
+    from diffplan.baselines.policies import METHOD_NAMES
+
+    baselines = tuple(METHOD_NAMES[name] for name in args.baselines)
+    all_rows = [main_row] + [rows[m, s] for m in modes + baselines for s in specs]
     result = {
         "experiment": f"kuka_{kind}", "episodes": args.episodes, "seed": seeds[0],
         "seeds": list(seeds), "validation": harness.VALIDATION_SEED in seeds,
         "policy": args.policy, "language": args.language,
-        "modes": [m for m in modes if m is not None],
+        "modes": [m for m in modes if m is not None], "baselines": list(args.baselines),
         "checkpoint": os.path.relpath(checkpoint, harness.REPO_ROOT) if checkpoint else None,
         "num_steps": args.num_steps if planner_policy else None,
         "carry": args.carry if planner_policy else None, "settle_seconds": args.settle,

@@ -36,7 +36,7 @@ def _physical(states) -> dict:
             "placements": states.t, "done": states.done}
 
 
-def _at_rest(states, settle: float) -> dict:
+def at_rest(states, settle: float) -> dict:
     """The final physical state after ``settle`` simulated seconds at rest (env.settle; 0: as
     released), with the poses as released kept as released_pos / released_held."""
     from envs.kuka import env
@@ -48,7 +48,7 @@ def _at_rest(states, settle: float) -> dict:
     return dict(out, released_pos=released["block_pos"], released_held=released["held"])
 
 
-def _batches(episodes, batch: int, bar, run_batch) -> dict:
+def batches(episodes, batch: int, bar, run_batch) -> dict:
     """run_batch(idx, chunk) -> dict of arrays over every episode, in calls of `batch` (the
     last padded with copies of its last episode, dropped afterwards); concatenated numpy."""
     n = episodes.block_xy.shape[0]
@@ -75,9 +75,9 @@ def run_expert(episodes, batch: int, bar=None, settle: float = SETTLE_SECONDS):
 
     def run_batch(idx, chunk):
         states, frames = expert.run_expert(env.reset_batch(chunk))
-        return dict(_at_rest(states, settle), frames=frames)
+        return dict(at_rest(states, settle), frames=frames)
 
-    return _batches(episodes, batch, bar, run_batch)
+    return batches(episodes, batch, bar, run_batch)
 
 
 def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=None,
@@ -95,10 +95,10 @@ def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=No
 
     def run_batch(idx, chunk):
         out = run(planner, planner_keys(seed, idx), chunk, 0)
-        return dict(_at_rest(out.final_state, settle), denoiser_calls=out.denoiser_calls,
+        return dict(at_rest(out.final_state, settle), denoiser_calls=out.denoiser_calls,
                     num_plans=out.num_plans)
 
-    return _batches(episodes, batch, bar, run_batch)
+    return batches(episodes, batch, bar, run_batch)
 
 
 def constraint_success(episodes, final, pos_key: str = "block_pos", held_key: str = "held"):

@@ -9,6 +9,8 @@ from experiments import cli, harness
 from experiments.kuka_spec import (CARRIES, CHECKPOINT_EVERY, DEFAULT_BATCH, DEFAULT_EPISODES,
                                    LANGUAGE_CHOICES, MODES, NUM_STEPS, POLICIES, TRAIN_STEPS,
                                    TRAINING_NAME)
+from experiments import kuka_baselines
+from experiments.kuka_baselines import KUKA_BASELINES
 from experiments.recipes import MODEL_SIZES
 
 
@@ -25,8 +27,10 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
                            episodes_help="evaluation episodes per column and seed",
                            where=" in each column")
     p.add_argument("--policy", choices=POLICIES, default="planner",
-                   help="who acts: 'planner' (the diffusion planner, default) or 'expert' (the "
-                        "scripted expert through the same primitive and physics)")
+                   help="who acts: 'planner' (the diffusion planner, default), 'expert' (the "
+                        "scripted expert through the same primitive and physics) or a shipped "
+                        f"baseline ({', '.join(KUKA_BASELINES)}: checkpoints/baselines/kuka), "
+                        "whose final states --states then writes")
     p.add_argument("--language", choices=tuple(LANGUAGE_CHOICES), default="canonical",
                    help="instruction phrasing: 'canonical' (Table 2, default), 'paraphrased' "
                         "with inverted prepositions (Table 5, the training paraphrases), "
@@ -66,6 +70,11 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
                         "OSMesa GL backend; without one a line says so and the run goes on)")
     p.add_argument("--num-videos", type=int, default=2,
                    help="episodes per column rendered with --video (default 2)")
+    p.add_argument("--baselines", nargs="?", const=",".join(KUKA_BASELINES), default=None,
+                   metavar="NAMES",
+                   help="add rows of the shipped Kuka baselines (checkpoints/baselines/kuka; "
+                        f"comma-separated of {','.join(KUKA_BASELINES)}; the flag alone: all), "
+                        "measured on the same episodes, seeds and physics as the main rows")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return p
 
@@ -82,8 +91,14 @@ MAX_SETTLE = 10.0
 def check_args(parser, args) -> tuple[str, ...]:
     """Validates the arguments (one-line errors before any work); returns the modes."""
     cli.check_training_flags(parser, args, TRAIN_FLAGS)
-    if args.policy == "expert" and (args.train or args.checkpoint):
+    if args.policy != "planner" and (args.train or args.checkpoint):
         parser.error("--train and --checkpoint only make sense with --policy planner")
+    if args.policy in KUKA_BASELINES:
+        if args.figures or args.video:
+            parser.error("--figures and --video draw the planner or the expert, not a "
+                         "baseline")
+        cli.check_baselines(parser, args.policy, KUKA_BASELINES, kuka_baselines.CHECKPOINT_DIR,
+                            "python -m experiments.train_baselines --world kuka --ship")
     for flag, value, minimum in (("--episodes", args.episodes, 1), ("--seed", args.seed, 0),
                                  ("--batch-size", args.batch_size, 1),
                                  ("--num-steps", args.num_steps, 1),
@@ -101,4 +116,7 @@ def check_args(parser, args) -> tuple[str, ...]:
     bad = [m for m in modes if m not in MODES]
     if bad or not modes or len(set(modes)) != len(modes):
         parser.error(f"--modes must be distinct modes of {MODES}, got {args.modes!r}")
+    args.baselines = cli.check_baselines(
+        parser, args.baselines, KUKA_BASELINES, kuka_baselines.CHECKPOINT_DIR,
+        "python -m experiments.train_baselines --world kuka --ship")
     return modes

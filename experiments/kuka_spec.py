@@ -7,10 +7,13 @@ import warnings
 
 from experiments import recipes
 from experiments.harness import CHECKPOINT_ROOT, LANGUAGE_CHOICES, LANGUAGES, REPO_ROOT
+from experiments.kuka_baselines import KUKA_BASELINES
 
 DEFAULT_EPISODES = 200
 DEFAULT_BATCH = 64
-POLICIES = ("planner", "expert")
+POLICIES = ("planner", "expert") + KUKA_BASELINES
+"""Who acts in the main rows: the diffusion planner, the scripted expert, or a shipped Kuka
+baseline (experiments.kuka_baselines)."""
 MODES = ("on_the_fly", "one_shot")
 """Planning modes of the Kuka experiments: a plan before every placement (the paper's
 on-the-fly planning, the main rows), or one plan at t = 0 followed to the end."""
@@ -115,7 +118,15 @@ def load_checked(checkpoint: str, num_steps: int, kind: str):
 
 
 def label(mode: str | None, multi: bool, language: str, policy: str) -> str:
-    """A row's method: who acts (and how it plans), which column, which phrasing."""
-    who = "expert" if policy == "expert" else f"planner {METHOD_NAMES[mode]}"
+    """A row's method: who acts (the planner and how it plans; mode None: policy, e.g. the
+    expert or a baseline's method name), which column, which phrasing."""
+    who = policy if mode is None else f"planner {METHOD_NAMES[mode]}"
     what = "multi-constraint" if multi else "single constraint"
     return f"{who}, {what}" + (f", {language}" if language != "canonical" else "")
+
+
+def policy_name(policy: str) -> str:
+    """The rows' name of a --policy: "expert", or a baseline's method name ("BC")."""
+    from diffplan.baselines.policies import METHOD_NAMES
+
+    return METHOD_NAMES.get(policy, policy)

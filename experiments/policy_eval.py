@@ -26,7 +26,7 @@ PLAN_FIELDS = ("plan_precision", "plan_recall", "plan_f1")
 
 
 @functools.lru_cache(maxsize=None)
-def _runner(task, act_fn, calls_per_move: int, plan_channels, observe):
+def policy_runner(task, act_fn, calls_per_move: int, plan_channels, observe):
     """jitted (params, keys, episodes) -> Rollout of one policy (cached: one compilation per
     task and architecture)."""
     return jax.jit(lambda params, keys, episodes: policy_rollout(
@@ -42,7 +42,7 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
     from tqdm import tqdm
 
     n = int(np.shape(episodes.tokens)[0])
-    run = _runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels,
+    run = policy_runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels,
                   policy.observe)
     root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
     per_call = min(n, batch_size)

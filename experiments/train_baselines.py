@@ -32,10 +32,12 @@ from envs.gridworld.training import TRAINING_MIXTURE
 from experiments import cli
 from experiments.baselines_ship import ship
 from experiments.harness import CHECKPOINT_ROOT, REPO_ROOT, fail
+from experiments.kuka_baselines import KUKA_BASELINES
 
 DEFAULT_RUN_DIR = os.path.join(REPO_ROOT, "runs", "baselines")
 SHIP_DIR = os.path.join(CHECKPOINT_ROOT, "baselines")
 NAMES = ("bc", "cql", "dd")
+WORLDS = ("gridworld", "kuka")
 
 def _json_file(path: str) -> dict:
     """argparse type: the results JSON (contract 2) at path."""
@@ -56,9 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train the CompILE baselines BC, CQL and DD-style (one model each for the "
                     "three settings), resuming from the last checkpoint; optionally ship them "
                     "to checkpoints/baselines with a NOTE.md each.")
-    p.add_argument("--baselines", default=",".join(NAMES),
+    p.add_argument("--world", choices=WORLDS, default="gridworld",
+                   help="whose baselines: the CompILE grid world's (default) or the Kuka "
+                        f"world's ({','.join(KUKA_BASELINES)} so far; runs in DIR/kuka/<name>, "
+                        "shipped to checkpoints/baselines/kuka/<name>)")
+    p.add_argument("--baselines", default=None,
                    help="comma-separated baselines to train / ship among bc,cql,dd "
-                        "(default all)")
+                        "(default all of the world's)")
     p.add_argument("--run-dir", metavar="DIR", default=DEFAULT_RUN_DIR,
                    help="training output root; each baseline trains into DIR/<name> "
                         "(default runs/baselines)")
@@ -120,14 +126,23 @@ def runs_of(name: str, run_dir: str, mixture=TRAINING_MIXTURE, per_setting: bool
 
 
 def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True, *,
-              mixture=TRAINING_MIXTURE, dd_model=dd.DDConfig(), per_setting=False) -> dict:
+              mixture=TRAINING_MIXTURE, dd_model=dd.DDConfig(), per_setting=False,
+              world: str = "gridworld") -> dict:
     """Trains the named baselines into run_dir/<name> on the mixture of settings (with
-    per_setting: one model per setting of the mixture, :func:`runs_of`); returns {name:
+    per_setting: one model per setting of the mixture, :func:`runs_of`; world "kuka": the Kuka
+    world's baselines on its training specs, mixture and per_setting unused); returns {name:
     seconds of this call}."""
     seconds = {}
     for name in names:
         start = time.time()
-        for out, data in runs_of(name, run_dir, mixture, per_setting):
+        if world == "kuka":
+            from envs.kuka import baselines as kb
+
+            kb.train_bc(os.path.join(run_dir, name), bc_config, progress=progress)
+            runs = ()
+        else:
+            runs = runs_of(name, run_dir, mixture, per_setting)
+        for out, data in runs:
             if name == "bc":
                 gb.train_bc(out, bc_config, mixture=data, progress=progress)
             elif name == "cql":
@@ -158,9 +173,17 @@ def main(argv: Sequence[str] | None = None):
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
-    names = tuple(n.strip() for n in args.baselines.split(",") if n.strip())
-    if not names or any(n not in NAMES for n in names):
-        parser.error(f"--baselines must be among {','.join(NAMES)}, got {args.baselines!r}")
+    known = KUKA_BASELINES if args.world == "kuka" else NAMES
+    names = tuple(n.strip() for n in (args.baselines or ",".join(known)).split(",")
+                  if n.strip())
+    if not names or any(n not in known for n in names):
+        parser.error(f"--baselines of the {args.world} world must be among {','.join(known)}, "
+                     f"got {args.baselines!r}")
+    if args.world == "kuka":
+        if args.per_setting:
+            parser.error("--per-setting is the grid world's (the Kuka baselines serve every "
+                         "column with one model)")
+        args.run_dir = os.path.join(args.run_dir, "kuka")
     for flag in ("bc_steps", "cql_steps", "dd_steps", "id_steps", "cql_buffer"):
         cli.check_at_least(parser, "--" + flag.replace("_", "-"), getattr(args, flag), 2)
     cli.check_at_least(parser, "--checkpoint-every", args.checkpoint_every, 1)
@@ -173,19 +196,22 @@ def main(argv: Sequence[str] | None = None):
                      "--ship")
     if args.no_train and not args.ship:
         parser.error("--no-train without --ship does nothing")
+    if args.world == "kuka":
+        args.ship_dir = os.path.join(args.ship_dir, "kuka")
     bc_config, cql_config, dd_config = configs(args)
     enable_compilation_cache()
     if not args.no_train:
         try:
             seconds = train_all(names, args.run_dir, bc_config, cql_config, dd_config,
-                                not args.no_progress, per_setting=args.per_setting)
+                                not args.no_progress, per_setting=args.per_setting,
+                                world=args.world)
         except ConfigMismatchError as e:
             fail(str(e))
         print(f"trained {','.join(names)} in {sum(seconds.values()) / 60:.1f} min",
               file=sys.stderr)
     if args.ship:
         ship(names, args.run_dir, args.ship_dir, args.results,
-             args.command or _default_command(argv), args.remark)
+             args.command or _default_command(argv), args.remark, args.world)
 
 
 if __name__ == "__main__":

@@ -34,11 +34,16 @@ class BCTrainConfig:
 
 
 def bc_loss(params, model, conditions, goals, actions):
-    """(mean cross-entropy of the model's action logits against the expert actions int32 (B,),
-    accuracy) for conditions (B, H, W, C) and goal vectors (B, G)."""
+    """(mean cross-entropy of the model's action logits against the expert actions, accuracy)
+    for conditions (B, H, W, C) and goal vectors (B, G). actions int32 (B,) (one choice of
+    num_outputs), or (B, K) for an action made of K choices of num_outputs / K each (the
+    logits split into K equal heads, e.g. a pick cell and a place cell; the loss is their
+    summed cross-entropy, the accuracy that of the whole action)."""
     logits = model.apply({"params": params}, conditions, goals)
-    loss = optax.softmax_cross_entropy_with_integer_labels(logits, actions).mean()
-    return loss, jnp.mean(jnp.argmax(logits, -1) == actions)
+    logits = logits.reshape(actions.shape + (-1,))
+    ce = optax.softmax_cross_entropy_with_integer_labels(logits, actions)
+    right = (jnp.argmax(logits, -1) == actions).reshape(actions.shape[0], -1).all(-1)
+    return ce.reshape(actions.shape[0], -1).sum(-1).mean(), jnp.mean(right)
 
 
 def make_bc_step(model, optimizer, batch_fn: Callable):
@@ -64,8 +69,8 @@ def train_bc(out_dir: str, batch_fn: Callable, input_shapes: Mapping[str, tuple]
              progress: bool = True):
     """Trains BC into out_dir (resuming); returns diffplan.train.FitResult.
 
-    batch_fn(key, batch_size) -> (conditions (B, H, W, C), goals (B, G), actions int32 (B,)):
-    the world's expert examples. input_shapes: {"condition": (1, H, W, C), "goal": (1, G)}.
+    batch_fn(key, batch_size) -> (conditions (B, H, W, C), goals (B, G), actions int32 (B,) or
+    (B, K): see :func:`bc_loss`): the world's expert examples. input_shapes: {"condition": (1, H, W, C), "goal": (1, G)}.
     data: the world's description of the batches, stored in the run's train config (a run of
     other data refuses to resume)."""
     model = nets.GoalConvNet(net)

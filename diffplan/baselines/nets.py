@@ -91,23 +91,32 @@ def init_state(model, optimizer, seed: int, input_shapes: Mapping[str, tuple]) -
                       step=jnp.zeros((), jnp.int32))
 
 
-def greedy_act(model, goal_fn: Callable) -> "GreedyAct":
-    """act_fn(params, conditions, tokens, keys) -> argmax actions int32 (B,), for
-    :func:`diffplan.baselines.rollout.policy_rollout`; goal_fn(tokens (B, L)) -> goal vectors
-    (B, G) is the world's (hashable: a module-level function). Hashable per (model, goal_fn):
-    one compilation serves every checkpoint of the same architecture."""
-    return GreedyAct(model, goal_fn)
+def greedy_act(model, goal_fn: Callable, heads: int = 1,
+               action_fn: Callable | None = None) -> "GreedyAct":
+    """act_fn(params, conditions, tokens, keys) -> argmax actions, for
+    :func:`diffplan.baselines.rollout.policy_rollout`: int32 (B,), or with heads > 1 int32
+    (B, heads) (the outputs split into equal heads, as ``bc.bc_loss`` trains them), then
+    mapped by action_fn (default: the indices are the actions). goal_fn(tokens (B, L)) -> goal
+    vectors (B, G) and action_fn are the world's (hashable: module-level functions). Hashable
+    per (model, goal_fn, heads, action_fn): one compilation serves every checkpoint of the same
+    architecture."""
+    return GreedyAct(model, goal_fn, heads, action_fn)
 
 
 @dataclasses.dataclass(frozen=True)
 class GreedyAct:
     model: nn.Module
     goal_fn: Callable
+    heads: int = 1
+    action_fn: Callable | None = None
 
     def __call__(self, params, conditions, tokens, keys):
         del keys
         out = self.model.apply({"params": params}, conditions, self.goal_fn(tokens))
-        return jnp.argmax(out, axis=-1).astype(jnp.int32)
+        if self.heads > 1:
+            out = out.reshape(out.shape[0], self.heads, -1)
+        actions = jnp.argmax(out, axis=-1).astype(jnp.int32)
+        return actions if self.action_fn is None else self.action_fn(actions)
 
 
 def config_dict(config, data: Mapping | None = None) -> dict:

@@ -36,13 +36,17 @@ DD_PARTS = ("diffusion", "inverse_dynamics")
 @dataclasses.dataclass(frozen=True)
 class PolicyWorld:
     """What the trained baselines need of a world to act in it (hashable: module-level
-    functions). goal_fn(tokens (B, L)) -> goal vectors float32 (B, goal_dim); for the DD-style
-    planner frame_fn(condition (H, W, C)) -> frame (cells,) and, for its plan metrics,
-    plan_fn(trajectory (cells, horizon), condition) -> plan (H, W, plan_channels) (None: no
-    plan)."""
+    functions). goal_fn(tokens (B, L)) -> goal vectors float32 (B, goal_dim); BC's and CQL's
+    action: the argmax of each of ``heads`` equal parts of the network's outputs, int32 (B,)
+    (heads 1) or (B, heads), mapped to the world's actions by action_fn (None: the indices are
+    the actions); for the DD-style planner frame_fn(condition (H, W, C)) -> frame (cells,)
+    and, for its plan metrics, plan_fn(trajectory (cells, horizon), condition) -> plan
+    (H, W, plan_channels) (None: no plan)."""
 
     goal_fn: Callable
     goal_dim: int
+    heads: int = 1
+    action_fn: Optional[Callable] = None
     frame_fn: Optional[Callable] = None
     plan_fn: Optional[Callable] = None
     plan_channels: Optional[int] = None
@@ -107,7 +111,8 @@ def load_policy(name: str, directory: str, world: PolicyWorld, *, dd_num_steps: 
         model = nets.GoalConvNet(nets.ConvNetConfig.from_dict(meta["model_config"]))
         condition = jnp.zeros(meta["input_shapes"]["condition"], jnp.float32)
         params, _ = _load_checked(directory, model, (condition, goal))
-        return LoadedPolicy(METHOD_NAMES[name], nets.greedy_act(model, world.goal_fn), params)
+        return LoadedPolicy(METHOD_NAMES[name], nets.greedy_act(
+            model, world.goal_fn, world.heads, world.action_fn), params)
     if world.frame_fn is None:
         raise ValueError("the DD-style planner needs the world's frame_fn; this world gives none")
     diffusion_dir, id_dir = (os.path.join(directory, part) for part in DD_PARTS)

@@ -83,11 +83,11 @@ def plan_example(pos, quat, episode: Episode):
                             maps.astype(jnp.float32) * 2 - 1], axis=-1)
 
 
-def training_example(key, spec: TaskSpec, perturb_prob: float):
-    """One example of a task spec: (x0 float32 (24, 24, C + G), tokens int32 (L,)).
-
-    The state: the first k relations of :func:`planner_goal` built (k uniform among those
-    still to do), blocks moved so far perturbed with probability ``perturb_prob``."""
+def training_state(key, spec: TaskSpec, perturb_prob: float):
+    """(pos float32 (4, 3), quat float32 (4, 4), episode): a state of a fresh episode of a task
+    spec between two placements: the first k relations of :func:`planner_goal` built (k uniform
+    among those still to do), blocks moved so far perturbed with probability ``perturb_prob``.
+    The episode's goal is the :func:`planner_goal` the state was built by."""
     k_episode, k_built, k_perturb, k_xy, k_yaw = jax.random.split(key, 5)
     episode = generate(k_episode, spec)
     goal = planner_goal(episode)
@@ -101,6 +101,13 @@ def training_example(key, spec: TaskSpec, perturb_prob: float):
     yaw = PERTURB_YAW * jnp.clip(jax.random.normal(k_yaw, (scene.NUM_BLOCKS,)), -2.5, 2.5)
     pos = pos.at[:, :2].add(jnp.where(moved[:, None], shift, 0.0))
     quat = _yaw_quat(jnp.where(moved, yaw, 0.0))
+    return pos, quat, episode.replace(goal=goal)
+
+
+def training_example(key, spec: TaskSpec, perturb_prob: float):
+    """One example of a task spec: (x0 float32 (24, 24, C + G), tokens int32 (L,)): the
+    planning tensor (:func:`plan_example`) of a :func:`training_state`."""
+    pos, quat, episode = training_state(key, spec, perturb_prob)
     return plan_example(pos, quat, episode), episode.tokens
 
 
