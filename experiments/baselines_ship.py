@@ -98,10 +98,12 @@ def _kuka_results(name, method, result) -> list[str]:
     if not rows:
         return []
     seeds = ",".join(map(str, result.get("seeds", [result["seed"]])))
-    return [f"`python -m experiments.{result['experiment']} --baselines {name} --episodes "
-            f"{result['episodes']} --seeds {seeds} --language {result['language']}` "
-            f"({result.get('machine', '')}; strict SR on the poses after "
-            f"{result.get('settle_seconds', 0):g} s at rest):", "", "```",
+    who = f"--policy {name}" if result.get("policy") == name else f"--baselines {name}"
+    settle = result.get("settle_seconds", 0)
+    return [f"`python -m experiments.{result['experiment']} {who} --episodes "
+            f"{result['episodes']} --seeds {seeds} --language {result['language']} --settle "
+            f"{settle:g}` ({result.get('machine', '')}; strict SR on the poses after "
+            f"{settle:g} s at rest):", "", "```",
             kuka_table(rows), "```", ""]
 
 

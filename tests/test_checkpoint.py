@@ -264,6 +264,7 @@ SHIPPED_PARAMS_SHA256 = {
     "baselines/bc/1o1g": "4b594fce64a1db88373af856742d34b3eb8c0478f3baa8f970a444d719757699",
     "baselines/bc/mo1g": "7d0ab37b07ed4fd8a7ccee4a5c8ae069af021b7db70988cbb7ac8b3c26d31b1e",
     "baselines/bc/p_mo2g": "ac0172ff639bf9eb5bbee963c1990877cf5d85fe63bdf468e8d4d6f457a041d5",
+    "baselines/kuka/bc": "07ef07cea1891e3522c56182e1d7c9b9ca369e7f5e1243b650fd5e705257b910",
     "baselines/cql": "000052dbdf6b97d44d4070c41040b5895af4ae5035e82a092869d1ed85b56e76",
     "baselines/dd/diffusion": "58c3dd84d47decea6ec0cd8cd447e88147c27b912ce675de2d851a93d862e46e",
     "baselines/dd/inverse_dynamics":

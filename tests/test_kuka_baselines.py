@@ -188,3 +188,32 @@ def test_kuka_cli_refuses_a_baseline_that_was_not_shipped(tmp_path, monkeypatch,
         assert info.value.code == 2
         err = capsys.readouterr().err.strip().splitlines()[-1]
         assert "no shipped baseline checkpoint for bc" in err and "--world kuka" in err
+
+
+SHIPPED_SEED = 4242
+"""A seed used for no choice and no reported number."""
+SHIPPED_EPISODES = 8
+SHIPPED_SATISFIED = 3
+"""Instructed constraints the shipped BC satisfied there (of 32: 8 single- and 8
+multi-constraint stacking episodes; SR 9.4, measured when it was shipped)."""
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")
+def test_shipped_kuka_bc_loads_and_still_performs(tmp_path):
+    """checkpoints/baselines/kuka/bc: its NOTE.md says how it was made and what it scored, its
+    network fits the Kuka world, and on 8 stacking episodes per column of seed 4242 it
+    satisfies at least what it measured there minus one constraint (an untrained network
+    satisfies none: see test_kuka_cli_runs_a_shipped_baseline_in_physics's smoke run)."""
+    import kuka_fixtures as kf
+    from experiments import kuka_baselines, kuka_cli
+
+    note = open(f"{kuka_baselines.CHECKPOINT_DIR}/bc/NOTE.md").read()
+    for needle in ("python -m experiments.train_baselines --world kuka", "seed",
+                   "--seeds 2001,2002,2003"):
+        assert needle in note, needle
+    result = kuka_cli.main("stacking", [
+        "--policy", "bc", "--episodes", str(SHIPPED_EPISODES), "--seed", str(SHIPPED_SEED),
+        "--batch-size", str(kf.BATCH), "--no-progress"])
+    main = result["rows"][0]
+    satisfied = round(main["SR"] * main["constraints"] / 100)
+    assert satisfied >= SHIPPED_SATISFIED - 1, (satisfied, main)
