@@ -103,6 +103,18 @@ def add_seed_flags(parser, *, episodes: int, episodes_help: str, where: str = ""
 # ------------------------------------------------------------------------------- rollout
 
 @functools.lru_cache(maxsize=None)
+@functools.lru_cache(maxsize=None)
+def policy_runner(task, act_fn, calls_per_move: int, plan_channels, observe):
+    """jitted (params, keys, episodes) -> Rollout of one policy
+    (diffplan.baselines.rollout.policy_rollout; cached: one compilation per task and
+    architecture, in either world)."""
+    from diffplan.baselines.rollout import policy_rollout
+
+    return jax.jit(lambda params, keys, episodes: policy_rollout(
+        task, act_fn, params, keys, episodes, calls_per_move=calls_per_move,
+        plan_channels=plan_channels, observe=observe))
+
+
 def rollout_fn(task, num_slots: int | None = None):
     """jitted (planner, keys (N,), episodes, token) -> Rollout: diffplan.rollout, or with
     num_slots the slot pool (diffplan.rollout_stream, re-planning modes), which reports its

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 
 from envs.kuka.env import SETTLE_SECONDS
-from experiments.harness import CHECKPOINT_ROOT, planner_keys
+from experiments.harness import CHECKPOINT_ROOT, planner_keys, policy_runner
 
 CHECKPOINT_DIR = os.path.join(CHECKPOINT_ROOT, "baselines", "kuka")
 KUKA_BASELINES = ("bc",)
@@ -33,7 +33,6 @@ def run_policy(task, policy, episodes, seed: int, batch: int, bar=None,
     the planner's keys of the seed; the final physical states as ``kuka_eval.run_planner``
     returns them (at rest after ``settle`` simulated seconds)."""
     from experiments import kuka_eval as ke
-    from experiments.policy_eval import policy_runner
 
     run = policy_runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels,
                         policy.observe)

@@ -43,9 +43,10 @@ def _denoiser(kind: str, args, progress: bool):
     return checkpoint, train_seconds, ks.load_checked(checkpoint, args.num_steps, kind)
 
 
-def _columns(args, seeds, specs, episodes, run, label):
-    """{spec: row}, {spec: (episodes, final)} of one actor in every column, pooled over the
-    seeds: run(episodes, seed) -> final physical states; label(spec) -> the row's method."""
+def _columns(args, seeds, specs, episodes, run, label, key, mode):
+    """{(key, spec): row}, {(key, spec): (episodes, final)} of one actor in every column,
+    pooled over the seeds: run(episodes, seed) -> final physical states; label(spec) -> the
+    row's method; mode: the rows' "mode"."""
     rows, finals = {}, {}
     for spec in specs:
         per_seed, parts = {}, []
@@ -59,10 +60,10 @@ def _columns(args, seeds, specs, episodes, run, label):
         eps = harness.concat_trees([episodes[spec, s] for s in seeds])
         row = ke.column_metrics(label(spec), "multi" if spec.multi else "single", eps, final,
                                 sum(r["seconds"] for r in per_seed.values()))
-        row.update(language=spec.language)
+        row.update(mode=mode, language=spec.language)
         if len(seeds) > 1:
             ke.add_intervals(row, ke.episode_counts(eps, final), per_seed)
-        rows[spec], finals[spec] = row, (eps, final)
+        rows[key, spec], finals[key, spec] = row, (eps, final)
     return rows, finals
 
 
@@ -85,18 +86,16 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
                 return ke.run_expert(eps, args.batch_size, bar, settle=args.settle)
         else:  # a baseline
             _, act = _baseline_actor(args, args.policy, bar)
-        by_spec = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
-            mode, spec.multi, spec.language, ks.policy_name(args.policy)))
-        for spec in specs:
-            rows[mode, spec], finals[mode, spec] = by_spec[0][spec], by_spec[1][spec]
-            rows[mode, spec]["mode"] = mode
+        out = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
+            mode, spec.multi, spec.language, ks.policy_name(args.policy)), mode, mode)
+        rows.update(out[0])
+        finals.update(out[1])
     for name in args.baselines:
         method, act = _baseline_actor(args, name, bar)
-        by_spec = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
-            None, spec.multi, spec.language, method))
-        for spec in specs:
-            rows[method, spec] = dict(by_spec[0][spec], mode=None)
-            finals[method, spec] = by_spec[1][spec]
+        out = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
+            None, spec.multi, spec.language, method), method, None)
+        rows.update(out[0])
+        finals.update(out[1])
     return rows, finals
 
 

@@ -5,11 +5,10 @@ from __future__ import annotations
 import argparse
 
 from envs.kuka.env import SETTLE_SECONDS
-from experiments import cli, harness
+from experiments import cli, harness, kuka_baselines
 from experiments.kuka_spec import (CARRIES, CHECKPOINT_EVERY, DEFAULT_BATCH, DEFAULT_EPISODES,
                                    LANGUAGE_CHOICES, MODES, NUM_STEPS, POLICIES, TRAIN_STEPS,
                                    TRAINING_NAME)
-from experiments import kuka_baselines
 from experiments.kuka_baselines import KUKA_BASELINES
 from experiments.recipes import MODEL_SIZES
 
@@ -97,8 +96,7 @@ def check_args(parser, args) -> tuple[str, ...]:
         if args.figures or args.video:
             parser.error("--figures and --video draw the planner or the expert, not a "
                          "baseline")
-        cli.check_baselines(parser, args.policy, KUKA_BASELINES, kuka_baselines.CHECKPOINT_DIR,
-                            "python -m experiments.train_baselines --world kuka --ship")
+        _check_baselines(parser, args.policy)
     for flag, value, minimum in (("--episodes", args.episodes, 1), ("--seed", args.seed, 0),
                                  ("--batch-size", args.batch_size, 1),
                                  ("--num-steps", args.num_steps, 1),
@@ -116,7 +114,11 @@ def check_args(parser, args) -> tuple[str, ...]:
     bad = [m for m in modes if m not in MODES]
     if bad or not modes or len(set(modes)) != len(modes):
         parser.error(f"--modes must be distinct modes of {MODES}, got {args.modes!r}")
-    args.baselines = cli.check_baselines(
-        parser, args.baselines, KUKA_BASELINES, kuka_baselines.CHECKPOINT_DIR,
-        "python -m experiments.train_baselines --world kuka --ship")
+    args.baselines = _check_baselines(parser, args.baselines)
     return modes
+
+
+def _check_baselines(parser, names: str | None) -> tuple[str, ...]:
+    """Kuka baseline names (``cli.check_baselines``: known, distinct, shipped)."""
+    return cli.check_baselines(parser, names, KUKA_BASELINES, kuka_baselines.CHECKPOINT_DIR,
+                               "python -m experiments.train_baselines --world kuka --ship")

@@ -6,7 +6,6 @@ evaluation episodes (``gridworld_eval.eval_episodes``), executed trajectories wi
 """
 from __future__ import annotations
 
-import functools
 import sys
 import time
 from typing import Sequence
@@ -16,35 +15,24 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffplan.baselines.policies import LoadedPolicy
-from diffplan.baselines.rollout import policy_rollout
 from envs.gridworld.config import make_config
 from envs.gridworld.task import GridTask
 from experiments.gridworld_eval import eval_episodes, metrics_row, pooled_row
-from experiments.harness import ROLLOUT_STREAM, concat_trees
+from experiments.harness import concat_trees, planner_keys, policy_runner
 
 PLAN_FIELDS = ("plan_precision", "plan_recall", "plan_f1")
-
-
-@functools.lru_cache(maxsize=None)
-def policy_runner(task, act_fn, calls_per_move: int, plan_channels, observe):
-    """jitted (params, keys, episodes) -> Rollout of one policy (cached: one compilation per
-    task and architecture)."""
-    return jax.jit(lambda params, keys, episodes: policy_rollout(
-        task, act_fn, params, keys, episodes, calls_per_move=calls_per_move,
-        plan_channels=plan_channels, observe=observe))
 
 
 def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress: bool = True,
                     desc: str = ""):
     """Runs a LoadedPolicy on the episodes (N) in calls of batch_size; episode i uses the key
-    fold_in(fold_in(PRNGKey(seed), ROLLOUT_STREAM), i), as our planner's evaluation does.
+    ``harness.planner_keys(seed, [i])``, as our planner's evaluation does.
     Returns (Rollout of numpy arrays, seconds)."""
     from tqdm import tqdm
 
     n = int(np.shape(episodes.tokens)[0])
     run = policy_runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels,
-                  policy.observe)
-    root = jax.random.fold_in(jax.random.PRNGKey(seed), ROLLOUT_STREAM)
+                        policy.observe)
     per_call = min(n, batch_size)
     outs = []
     start = time.time()
@@ -53,7 +41,7 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
         for lo in range(0, n, per_call):
             idx = np.arange(lo, min(n, lo + per_call))
             chunk = jax.tree.map(lambda x: x[idx], episodes)
-            keys = jax.vmap(lambda i: jax.random.fold_in(root, i))(jnp.asarray(idx))
+            keys = planner_keys(seed, idx)
             pad = per_call - len(idx)
             if pad:  # the last call padded to the compiled size; padding results dropped
                 chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)

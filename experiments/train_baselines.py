@@ -135,15 +135,14 @@ def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True, *
     seconds = {}
     for name in names:
         start = time.time()
-        if world == "kuka":
-            from envs.kuka import baselines as kb
-
-            kb.train_bc(os.path.join(run_dir, name), bc_config, progress=progress)
-            runs = ()
-        else:
-            runs = runs_of(name, run_dir, mixture, per_setting)
+        runs = (((os.path.join(run_dir, name), None),) if world == "kuka"
+                else runs_of(name, run_dir, mixture, per_setting))
         for out, data in runs:
-            if name == "bc":
+            if world == "kuka":
+                from envs.kuka import baselines as kb
+
+                kb.train_bc(out, bc_config, progress=progress)
+            elif name == "bc":
                 gb.train_bc(out, bc_config, mixture=data, progress=progress)
             elif name == "cql":
                 gb.train_cql(out, cql_config, mixture=data, progress=progress)

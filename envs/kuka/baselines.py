@@ -28,7 +28,7 @@ from diffplan.baselines import bc, nets
 from diffplan.baselines.policies import PolicyWorld
 from envs.kuka import expert, grammar, grid, primitive, scene
 from envs.kuka.task import Action, NUM_COND_CHANNELS, condition_from_view
-from envs.kuka.training import SPECS, training_episode_keys, training_state
+from envs.kuka.training import SPECS, spec_examples, training_state
 
 PAIRS = np.array([(top, bottom) for top in range(scene.NUM_BLOCKS)
                   for bottom in range(scene.NUM_BLOCKS) if top != bottom], np.int32)
@@ -150,13 +150,7 @@ def bc_example(key, spec, perturb_prob: float = 0.5):
 def bc_batch(key, batch_size: int, specs=SPECS, perturb_prob: float = 0.5):
     """(conditions (B, 24, 24, 2), goal vectors (B, GOAL_DIM), actions int32 (B, 2)): the same
     share of every task spec (batch_size a multiple of len(specs)); training-stream keys."""
-    if batch_size % len(specs):
-        raise ValueError(f"batch size {batch_size} is not a multiple of the {len(specs)} "
-                         "task specs")
-    keys = training_episode_keys(key, batch_size).reshape(len(specs), -1, 2)
-    parts = [jax.vmap(bc_example, in_axes=(0, None, None))(k, spec, perturb_prob)
-             for k, spec in zip(keys, specs)]
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    return spec_examples(bc_example, key, batch_size, specs, perturb_prob)
 
 
 def specs_data(specs=SPECS) -> dict:

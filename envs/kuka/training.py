@@ -119,6 +119,18 @@ def training_episode_keys(key, batch_size: int):
     return jax.random.split(jax.random.fold_in(key, TRAIN_STREAM), batch_size)
 
 
+def spec_examples(example_fn, key, batch_size: int, specs, perturb_prob: float):
+    """example_fn(key, spec, perturb_prob) vmapped over the same share of training-stream keys
+    for every task spec (batch_size a multiple of len(specs)), concatenated in spec order."""
+    if batch_size % len(specs):
+        raise ValueError(f"batch size {batch_size} is not a multiple of the {len(specs)} "
+                         "task specs")
+    keys = training_episode_keys(key, batch_size).reshape(len(specs), -1, 2)
+    parts = [jax.vmap(example_fn, in_axes=(0, None, None))(k, spec, perturb_prob)
+             for k, spec in zip(keys, specs)]
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+
+
 @dataclasses.dataclass(frozen=True)
 class Recipe:
     """The Kuka world's training-data recipe (what the Kuka CLIs' --train uses).
@@ -148,14 +160,7 @@ class Recipe:
         specs, prob, weight = self.specs, self.perturb_prob, self.goal_loss_weight
 
         def batch_fn(key, batch_size):
-            if batch_size % len(specs):
-                raise ValueError(f"batch size {batch_size} is not a multiple of the "
-                                 f"{len(specs)} task specs")
-            keys = training_episode_keys(key, batch_size).reshape(len(specs), -1, 2)
-            parts = [jax.vmap(training_example, in_axes=(0, None, None))(k, spec, prob)
-                     for k, spec in zip(keys, specs)]
-            x0 = jnp.concatenate([x for x, _ in parts])
-            tokens = jnp.concatenate([t for _, t in parts])
+            x0, tokens = spec_examples(training_example, key, batch_size, specs, prob)
             mask = jnp.broadcast_to(jnp.array([1.0, weight, weight], jnp.float32),
                                     x0.shape[:-1] + (NUM_GEN_CHANNELS,))
             return Batch(x0=x0, tokens=tokens, loss_mask=mask)
