@@ -83,6 +83,24 @@ KUKA_DESCRIPTIONS = {
           "training expert's moves in the states between placements; greedy; executed by the "
           "same primitive and physics, the block carried around the base "
           "(envs/kuka/baselines.py).",
+    "cql": "Conservative Q-learning in the Kuka world (the paper's Table 2 CQL, appendix): the "
+           "same network with one Q-value per cell (576), a move decided in two steps (the "
+           "cell to pick from, then, told which block that took, the cell to place on); "
+           "trained offline on a 300k buffer of epsilon-greedy transitions around the "
+           "training expert (epsilon 1 -> 0.01 over 10k frames) made without physics in the "
+           "expert's training states, reward minus the distance (m) from the chosen cell to "
+           "the current target (the block to pick, then the place), double DQN + CQL(H) "
+           "(alpha 1), gamma 0.99, tau 0.001, lr 1e-3; greedy; executed by the same "
+           "primitive and physics (envs/kuka/baselines.py).",
+    "dd": "Decision-Diffuser-style planner in the Kuka world (the paper's Table 2 DD): "
+          "diffusion over 4-frame trajectories of block states (the four blocks' centres, 12 "
+          "values: the blocks now and after each of the training expert's next placements, "
+          "made without physics) with Diffuser's 1-D temporal UNet (widths 32/64, kernel 3) "
+          "conditioned on the multi-hot constraint vector (dropped for 10% of the examples: "
+          "classifier-free guidance), frame 0 (the observed block poses) in-painted; an "
+          "inverse dynamics MLP turns (frame 0, frame 1) into the pick cell and the place "
+          "cell (two 576-way heads); re-plans after every placement; executed by the same "
+          "primitive and physics (envs/kuka/baselines.py).",
 }
 """What each Kuka baseline is (its NOTE.md's first paragraph)."""
 KUKA_DATA = ("- trained on the Kuka denoiser's task specs (the four Table 2 columns, canonical "

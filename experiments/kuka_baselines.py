@@ -1,6 +1,6 @@
-"""The baselines in the Kuka world (the paper's Table 2 BC): the shipped checkpoints
+"""The baselines in the Kuka world (the paper's Table 2 BC and CQL, and a Decision-Diffuser-style planner): the shipped checkpoints
 (``checkpoints/baselines/kuka/<name>``, made by ``python -m experiments.train_baselines
---world kuka --ship``) acting through ``envs.kuka.baselines.POLICY_WORLD``, run on the same
+--world kuka --ship``) acting through ``envs.kuka.baselines.POLICY_WORLDS``, run on the same
 seeded episodes as the planner's rows with ``diffplan.baselines.rollout.policy_rollout`` (the
 same primitive and MJX physics, re-observed after every placement) and measured on the final
 physical poses after the same rest (``kuka_eval``). The Kuka CLIs' ``--baselines`` rows.
@@ -13,7 +13,7 @@ from envs.kuka.env import SETTLE_SECONDS
 from experiments.harness import CHECKPOINT_ROOT, planner_keys, policy_runner
 
 CHECKPOINT_DIR = os.path.join(CHECKPOINT_ROOT, "baselines", "kuka")
-KUKA_BASELINES = ("bc",)
+KUKA_BASELINES = ("bc", "cql", "dd")
 """The baselines trained for the Kuka world so far."""
 
 
@@ -21,10 +21,10 @@ def load_baselines(names, root: str | None = None) -> list:
     """The LoadedPolicy of each named baseline from root/<name> (default CHECKPOINT_DIR;
     FileNotFoundError when one is missing, ValueError when it does not fit the Kuka world)."""
     from diffplan.baselines.policies import load_policy
-    from envs.kuka.baselines import POLICY_WORLD
+    from envs.kuka.baselines import POLICY_WORLDS
 
     root = CHECKPOINT_DIR if root is None else root
-    return [load_policy(name, os.path.join(root, name), POLICY_WORLD) for name in names]
+    return [load_policy(name, os.path.join(root, name), POLICY_WORLDS[name]) for name in names]
 
 
 def run_policy(task, policy, episodes, seed: int, batch: int, bar=None,

@@ -141,7 +141,14 @@ def train_all(names, run_dir, bc_config, cql_config, dd_config, progress=True, *
             if world == "kuka":
                 from envs.kuka import baselines as kb
 
-                kb.train_bc(out, bc_config, progress=progress)
+                if name == "bc":
+                    kb.train_bc(out, bc_config, progress=progress)
+                elif name == "cql":
+                    kb.train_cql(out, cql_config, progress=progress)
+                else:
+                    kb.train_dd(os.path.join(out, "diffusion"), dd_config, progress=progress)
+                    kb.train_inverse_dynamics(os.path.join(out, "inverse_dynamics"),
+                                              dd_config, progress=progress)
             elif name == "bc":
                 gb.train_bc(out, bc_config, mixture=data, progress=progress)
             elif name == "cql":

@@ -11,7 +11,6 @@ import dataclasses
 from typing import Callable, Mapping
 
 import jax
-import jax.numpy as jnp
 import optax
 
 from diffplan.baselines import nets
@@ -39,11 +38,8 @@ def bc_loss(params, model, conditions, goals, actions):
     num_outputs), or (B, K) for an action made of K choices of num_outputs / K each (the
     logits split into K equal heads, e.g. a pick cell and a place cell; the loss is their
     summed cross-entropy, the accuracy that of the whole action)."""
-    logits = model.apply({"params": params}, conditions, goals)
-    logits = logits.reshape(actions.shape + (-1,))
-    ce = optax.softmax_cross_entropy_with_integer_labels(logits, actions)
-    right = (jnp.argmax(logits, -1) == actions).reshape(actions.shape[0], -1).all(-1)
-    return ce.reshape(actions.shape[0], -1).sum(-1).mean(), jnp.mean(right)
+    return nets.action_cross_entropy(model.apply({"params": params}, conditions, goals),
+                                     actions)
 
 
 def make_bc_step(model, optimizer, batch_fn: Callable):

@@ -32,7 +32,7 @@ from diffplan import checkpoint as ckpt
 from diffplan.baselines import nets
 from diffplan.train import TrainState, fit, run_metadata
 
-__all__ = ["CQLTrainConfig", "Collector", "epsilon_at", "collect", "collect_buffer",
+__all__ = ["CQLTrainConfig", "Collector", "epsilon_at", "action_dtype", "collect", "collect_buffer",
            "as_q_batch", "network_q_fn", "cql_loss", "make_cql_step", "train_cql"]
 
 
@@ -98,6 +98,14 @@ def epsilon_at(frame, start: float = 1.0, end: float = 0.01, frames: int = 10_00
     return start + (end - start) * frac
 
 
+def action_dtype(num_actions: int):
+    """The narrowest integer type the buffer stores actions in: int8 up to 127 actions, else
+    int16 (up to 32767)."""
+    if num_actions > 32767:
+        raise ValueError(f"the buffer stores actions as int16: at most 32767, got {num_actions}")
+    return jnp.int8 if num_actions <= 127 else jnp.int16
+
+
 def _where_done(done, fresh, old):
     return jax.tree.map(lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
                         fresh, old)
@@ -120,7 +128,7 @@ def _collect(key, world: Collector, collectors: int, moves: int, cfg: CQLTrainCo
         actions = jnp.where(explore, random_actions, v(world.expert_action)(states))
         nxt = v(world.step)(states, actions)
         record = {"obs": v(world.observe)(states), "next_obs": v(world.observe)(nxt),
-                  "instruction": instructions, "action": actions.astype(jnp.int8),
+                  "instruction": instructions, "action": actions.astype(action_dtype(world.num_actions)),
                   "reward": v(world.reward)(nxt), "terminal": v(world.terminal)(nxt)}
         fresh = world.episodes(k_new, collectors)
         done = v(world.done)(nxt)
@@ -141,12 +149,15 @@ world, jitted (world, collectors, moves and cfg static)."""
 def collect_buffer(key, worlds: Sequence[tuple[Collector, int]],
                    cfg: CQLTrainConfig = CQLTrainConfig()):
     """The replay buffer: a dict of arrays with a leading axis of cfg.buffer_size transitions
-    (obs / next_obs as the world observes them, instruction, action int8, reward float32,
+    (obs / next_obs as the world observes them, instruction, action int8 (int16 beyond 127
+    actions: :func:`action_dtype`), reward float32,
     terminal bool). worlds: (collector, count) pairs, collected in the counts' proportions,
     cfg.collectors split alike (each world anneals epsilon over its own first epsilon_frames
     frames; world i collects with fold_in(key, i)); a pure function of key, worlds and cfg."""
-    if any(world.num_actions > 127 for world, _ in worlds):
-        raise ValueError("the buffer stores actions as int8: at most 127 actions")
+    dtypes = {action_dtype(world.num_actions) for world, _ in worlds}
+    if len(dtypes) > 1:
+        raise ValueError("the worlds of one buffer must store their actions alike (all at "
+                         "most 127 actions, or all more)")
     total = sum(count for _, count in worlds)
     moves = math.ceil(cfg.buffer_size / cfg.collectors)
     parts = []

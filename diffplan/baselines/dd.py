@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import optax
 
 from diffplan import models
+from diffplan.baselines import nets
 from diffplan.denoiser import LoadedDenoiser, ModuleApply
 from diffplan.sampler import sample
 from diffplan.schedule import cosine_schedule
@@ -164,7 +165,8 @@ class DDModel(nn.Module):
 
 @dataclasses.dataclass(frozen=True)
 class IDConfig:
-    """The inverse dynamics MLP: (frame_t, frame_t+1) -> num_actions action logits."""
+    """The inverse dynamics MLP: (frame_t, frame_t+1) -> num_actions action logits (all the
+    heads' when an action is several choices, e.g. the Kuka world's 2 x 576 cells)."""
 
     hidden: tuple = (256, 256)
     num_actions: int = 4
@@ -297,7 +299,7 @@ def train_inverse_dynamics(out_dir: str, batch_fn: Callable,
                            data: Mapping | None = None, progress: bool = True):
     """Trains the inverse dynamics (cross-entropy, Adam) into out_dir (resuming) on the world's
     batch_fn(key, batch_size) -> (frames (B, cells), next frames (B, cells), expert actions
-    int32 (B,)); returns diffplan.train.FitResult. data: as for train_dd, stored in
+    int32 (B,), or (B, K) for K heads: ``nets.action_cross_entropy``); returns diffplan.train.FitResult. data: as for train_dd, stored in
     the run's train config."""
     model = InverseDynamics(id_config)
     optimizer = optax.adam(config.id_lr)
@@ -309,9 +311,7 @@ def train_inverse_dynamics(out_dir: str, batch_fn: Callable,
                           step=jnp.zeros((), jnp.int32))
 
     def loss_fn(params, s, s_next, actions):
-        logits = model.apply({"params": params}, s, s_next)
-        loss = optax.softmax_cross_entropy_with_integer_labels(logits, actions).mean()
-        return loss, jnp.mean(jnp.argmax(logits, -1) == actions)
+        return nets.action_cross_entropy(model.apply({"params": params}, s, s_next), actions)
 
     def step(state, key, data_):
         del data_
@@ -349,9 +349,11 @@ class DDPolicy:
     with a plan_fn, of the DD-style planner; params = {"denoiser": LoadedDenoiser,
     "inverse_dynamics": ID params}. num_steps DDIM steps per move (eta 0), guidance w (1:
     conditional only). The world's (hashable) functions: goal_fn(tokens (B, L)) -> goal vectors
-    (B, G); frame_fn(condition (H, W, C)) -> frame (cells,); plan_fn(trajectory (cells,
-    horizon), condition (H, W, C)) -> plan (H, W, G) of the sampled trajectory, or None (no
-    plan)."""
+    (B, G); frame_fn(observation) -> frame (cells,) of what the policy observes of a state (the
+    condition channels (H, W, C) unless the world observes otherwise); plan_fn(trajectory
+    (cells, horizon), observation) -> plan (H, W, G) of the sampled trajectory, or None (no
+    plan); the inverse dynamics' ``heads`` argmaxes (``nets.argmax_actions``) mapped to the
+    world's actions by action_fn (None: they are the moves)."""
 
     model_config: DDConfig
     goal_fn: Callable
@@ -360,6 +362,8 @@ class DDPolicy:
     id_config: IDConfig = IDConfig()
     num_steps: int = 10
     guidance: float = 1.0
+    heads: int = 1
+    action_fn: Optional[Callable] = None
 
     @property
     def calls_per_move(self) -> int:
@@ -388,7 +392,9 @@ class DDPolicy:
         traj = jax.vmap(one)(keys, x_known, self.goal_fn(tokens))[:, 0]  # (B, cells, horizon)
         logits = InverseDynamics(self.id_config).apply(
             {"params": params["inverse_dynamics"]}, frames, traj[..., 1])
-        moves = jnp.argmax(logits, -1).astype(jnp.int32)
+        moves = nets.argmax_actions(logits, self.heads)
+        if self.action_fn is not None:
+            moves = self.action_fn(moves)
         if self.plan_fn is None:
             return moves
         return moves, jax.vmap(self.plan_fn)(traj, conditions)

@@ -14,12 +14,13 @@ from typing import Callable, Mapping
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import optax
 
 from diffplan import models
 from diffplan.train import TrainState
 
 __all__ = ["ConvNetConfig", "GoalConvNet", "init_net", "init_state", "greedy_act",
-           "GreedyAct", "config_dict"]
+           "GreedyAct", "action_cross_entropy", "argmax_actions", "config_dict"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,16 +92,20 @@ def init_state(model, optimizer, seed: int, input_shapes: Mapping[str, tuple]) -
                       step=jnp.zeros((), jnp.int32))
 
 
-def greedy_act(model, goal_fn: Callable, heads: int = 1,
-               action_fn: Callable | None = None) -> "GreedyAct":
+def greedy_act(model, goal_fn: Callable, heads: int = 1, action_fn: Callable | None = None,
+               decide: Callable | None = None) -> "GreedyAct":
     """act_fn(params, conditions, tokens, keys) -> argmax actions, for
     :func:`diffplan.baselines.rollout.policy_rollout`: int32 (B,), or with heads > 1 int32
     (B, heads) (the outputs split into equal heads, as ``bc.bc_loss`` trains them), then
     mapped by action_fn (default: the indices are the actions). goal_fn(tokens (B, L)) -> goal
-    vectors (B, G) and action_fn are the world's (hashable: module-level functions). Hashable
-    per (model, goal_fn, heads, action_fn): one compilation serves every checkpoint of the same
-    architecture."""
-    return GreedyAct(model, goal_fn, heads, action_fn)
+    vectors (B, G) and action_fn are the world's (hashable: module-level functions). A world
+    whose action is chosen in several greedy decisions (e.g. a cell to pick, then one to place
+    on, each with what the previous ones chose in the network's goal input) gives
+    decide(outputs_fn, conditions, goals) -> actions instead, outputs_fn(goal inputs (B, G'))
+    -> the network's outputs (B, num_outputs) on the conditions (heads and action_fn unused).
+    Hashable per (model, goal_fn, heads, action_fn, decide): one compilation serves every
+    checkpoint of the same architecture."""
+    return GreedyAct(model, goal_fn, heads, action_fn, decide)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,14 +114,36 @@ class GreedyAct:
     goal_fn: Callable
     heads: int = 1
     action_fn: Callable | None = None
+    decide: Callable | None = None
 
     def __call__(self, params, conditions, tokens, keys):
         del keys
+        if self.decide is not None:
+            return self.decide(lambda goals: self.model.apply({"params": params}, conditions,
+                                                              goals),
+                               conditions, self.goal_fn(tokens))
         out = self.model.apply({"params": params}, conditions, self.goal_fn(tokens))
-        if self.heads > 1:
-            out = out.reshape(out.shape[0], self.heads, -1)
-        actions = jnp.argmax(out, axis=-1).astype(jnp.int32)
+        actions = argmax_actions(out, self.heads)
         return actions if self.action_fn is None else self.action_fn(actions)
+
+
+def action_cross_entropy(logits, actions):
+    """(mean cross-entropy, accuracy) of action logits (B, A) against expert actions int32 (B,)
+    (one choice of A), or (B, K) for an action made of K choices of A / K each (the logits split
+    into K equal heads, e.g. a pick cell and a place cell: their summed cross-entropy, the
+    accuracy that of the whole action)."""
+    logits = logits.reshape(actions.shape + (-1,))
+    ce = optax.softmax_cross_entropy_with_integer_labels(logits, actions)
+    right = (jnp.argmax(logits, -1) == actions).reshape(actions.shape[0], -1).all(-1)
+    return ce.reshape(actions.shape[0], -1).sum(-1).mean(), jnp.mean(right)
+
+
+def argmax_actions(outputs, heads: int = 1):
+    """int32 (B,) the argmax of outputs (B, A), or (B, heads) that of each of ``heads`` equal
+    parts (as :func:`action_cross_entropy` trains them)."""
+    if heads > 1:
+        outputs = outputs.reshape(outputs.shape[0], heads, -1)
+    return jnp.argmax(outputs, axis=-1).astype(jnp.int32)
 
 
 def config_dict(config, data: Mapping | None = None) -> dict:

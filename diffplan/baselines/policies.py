@@ -36,10 +36,13 @@ DD_PARTS = ("diffusion", "inverse_dynamics")
 @dataclasses.dataclass(frozen=True)
 class PolicyWorld:
     """What the trained baselines need of a world to act in it (hashable: module-level
-    functions). goal_fn(tokens (B, L)) -> goal vectors float32 (B, goal_dim); BC's and CQL's
-    action: the argmax of each of ``heads`` equal parts of the network's outputs, int32 (B,)
-    (heads 1) or (B, heads), mapped to the world's actions by action_fn (None: the indices are
-    the actions); for the DD-style planner frame_fn(condition (H, W, C)) -> frame (cells,)
+    functions). goal_fn(tokens (B, L)) -> goal vectors float32 (B, G); goal_dim: the width
+    of the network's goal input (G, or what ``decide`` extends the goal vector to); BC's and
+    CQL's action: the argmax of each of ``heads`` equal parts of the network's outputs, int32
+    (B,) (heads 1) or (B, heads), mapped to the world's actions by action_fn (None: the
+    indices are the actions), or decide's (``nets.greedy_act``: an action chosen in several
+    greedy decisions); observe(state) -> what the policy sees of one state (None: the task's
+    condition; e.g. block poses for a planner over block states); for the DD-style planner frame_fn(condition (H, W, C)) -> frame (cells,)
     and, for its plan metrics, plan_fn(trajectory (cells, horizon), condition) -> plan
     (H, W, plan_channels) (None: no plan)."""
 
@@ -50,6 +53,8 @@ class PolicyWorld:
     frame_fn: Optional[Callable] = None
     plan_fn: Optional[Callable] = None
     plan_channels: Optional[int] = None
+    decide: Optional[Callable] = None
+    observe: Optional[Callable] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,7 +117,8 @@ def load_policy(name: str, directory: str, world: PolicyWorld, *, dd_num_steps: 
         condition = jnp.zeros(meta["input_shapes"]["condition"], jnp.float32)
         params, _ = _load_checked(directory, model, (condition, goal))
         return LoadedPolicy(METHOD_NAMES[name], nets.greedy_act(
-            model, world.goal_fn, world.heads, world.action_fn), params)
+            model, world.goal_fn, world.heads, world.action_fn, world.decide), params,
+            observe=world.observe)
     if world.frame_fn is None:
         raise ValueError("the DD-style planner needs the world's frame_fn; this world gives none")
     diffusion_dir, id_dir = (os.path.join(directory, part) for part in DD_PARTS)
@@ -128,8 +134,10 @@ def load_policy(name: str, directory: str, world: PolicyWorld, *, dd_num_steps: 
     z = jnp.zeros((1, model_config.cells), jnp.float32)
     id_params, _ = _load_checked(id_dir, dd.InverseDynamics(id_config), (z, z))
     policy = dd.DDPolicy(model_config, world.goal_fn, world.frame_fn, world.plan_fn,
-                         id_config=id_config, num_steps=dd_num_steps, guidance=dd_guidance)
+                         id_config=id_config, num_steps=dd_num_steps, guidance=dd_guidance,
+                         heads=world.heads, action_fn=world.action_fn)
     return LoadedPolicy(METHOD_NAMES[name], policy,
                         {"denoiser": den, "inverse_dynamics": id_params},
                         calls_per_move=policy.calls_per_move,
-                        plan_channels=None if world.plan_fn is None else world.plan_channels)
+                        plan_channels=None if world.plan_fn is None else world.plan_channels,
+                        observe=world.observe)

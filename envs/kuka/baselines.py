@@ -14,20 +14,31 @@ BC learns the training expert's moves (``envs.kuka.training``: the instructed re
 instruction order, the same expert the denoiser learns from) in the states between placements
 that the denoiser's training draws (``training.training_state``, perturbed as there), on the
 same task specs (the four Table 2 columns, canonical and training-paraphrase instructions).
+
+CQL (the appendix's: reward minus the distance to the current target, the block to pick, then
+the place) needs transitions, and physics is far too slow to make 300k of them on a CPU: its
+decision process (:class:`KukaCollector`) moves blocks as the primitive places them, at rest,
+without physics, from the same training states. A move is two decisions over the 576 cells,
+the pick's and then the place's, one Q-value per cell; the network's goal input also says which
+decision it is and which block the pick took (:func:`decision_goals`), and the policy makes the
+two greedily in turn (:func:`q_decide`). It is evaluated like BC, in physics.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from diffplan import language
-from diffplan.baselines import bc, nets
+from diffplan.baselines import bc, cql, dd, nets
 from diffplan.baselines.policies import PolicyWorld
-from envs.kuka import expert, grammar, grid, primitive, scene
-from envs.kuka.task import Action, NUM_COND_CHANNELS, condition_from_view
+from envs.kuka import env, expert, grammar, grid, physics, primitive, scene
+from envs.kuka.task import Action, NUM_COND_CHANNELS, condition_from_view, view_of_condition
 from envs.kuka.training import SPECS, spec_examples, training_state
 
 PAIRS = np.array([(top, bottom) for top in range(scene.NUM_BLOCKS)
@@ -169,3 +180,280 @@ def train_bc(out_dir: str, config: bc.BCTrainConfig = bc.BCTrainConfig(batch_siz
 POLICY_WORLD = PolicyWorld(goal_fn=goal_vector, goal_dim=GOAL_DIM, heads=HEADS,
                            action_fn=actions_of)
 """How the trained baselines act in the Kuka world (``diffplan.baselines.policies``)."""
+
+
+# ------------------------------------------------------------------------------- CQL
+
+Q_GOAL_DIM = GOAL_DIM + scene.NUM_BLOCKS + 1
+"""CQL's goal input: the constraint vector, then which block the pick took (one-hot, zeros when
+it took none) and 1 when the decision is the place (0: the pick)."""
+
+
+def place_poses(pos, quat, block, cell):
+    """(pos float32 (4, 3), quat float32 (4, 4)): ``block`` (int (), -1: nothing) put down at
+    cell int (2,) where the primitive puts it (``env.place_of``: centred on the highest
+    other block covering the cell, else on the floor at the cell's centre), at rest, flat and
+    turned as its support (unturned on the floor): the move without physics."""
+    pos, quat = jnp.asarray(pos, jnp.float32), jnp.asarray(quat, jnp.float32)
+    place, _, support = env.place_of(pos, quat, jnp.zeros(scene.NUM_BLOCKS, bool), block, cell)
+    turned = jnp.where(support >= 0, quat[jnp.maximum(support, 0)],
+                       jnp.array([1.0, 0.0, 0.0, 0.0]))
+    centre = place.at[2].set(place[2] - scene.BLOCK_HALF_SIZE[2] - primitive.PLACE_GAP)
+    b = jnp.maximum(block, 0)
+    moved = block >= 0
+    return (pos.at[b].set(jnp.where(moved, centre, pos[b])),
+            quat.at[b].set(jnp.where(moved, turned, quat[b])))
+
+
+@struct.dataclass
+class QState:
+    """A state of CQL's decision process (one episode): blocks at rest at pos float32 (4, 3),
+    quat (4, 4); placing bool () (False: the next decision is the cell to pick from, True: the
+    cell to place on); block int32 () the block the pick took (-1: none); target int32 (2,) the
+    flat cells of the training expert's pick and place from the last state between placements
+    (the reward's targets); reward float32 () of the last decision; t int32 () placements made;
+    episode (its goal: ``training.planner_goal``)."""
+
+    pos: jax.Array
+    quat: jax.Array
+    placing: jax.Array
+    block: jax.Array
+    target: jax.Array
+    reward: jax.Array
+    t: jax.Array
+    episode: Any
+
+
+def _expert_cells(pos, quat, episode):
+    del quat
+    step = expert.decide(pos, jnp.zeros(scene.NUM_BLOCKS, bool), episode)
+    return jnp.stack([cell_index(step.action[:2]), cell_index(step.action[2:])])
+
+
+def _cell_distance(a, b):
+    """float32 (): metres between the centres of flat cells a and b."""
+    cells = jnp.stack([jnp.stack([a // grid.GRID_SIZE, a % grid.GRID_SIZE]),
+                       jnp.stack([b // grid.GRID_SIZE, b % grid.GRID_SIZE])])
+    return jnp.linalg.norm(grid.cell_center(cells[0]) - grid.cell_center(cells[1]))
+
+
+@dataclasses.dataclass(frozen=True)
+class KukaCollector:
+    """diffplan.baselines.cql.Collector of the Kuka world without physics: a decision is a cell
+    (NUM_CELLS actions), the pick's, then the place's, made as the primitive makes them
+    (:func:`place_poses`, the picked block being the one on top at the pick cell); the reward
+    is minus the distance (m) from the chosen cell to the current target (the training expert's
+    block to pick, then its place); an episode starts in a training state of one of the specs
+    (``training.training_state``, the specs in equal shares), terminates when its relations
+    hold between placements and is truncated after its max_steps placements. Instructions are
+    stored as the multi-hot constraint vector int8 (GOAL_DIM,)."""
+
+    specs: tuple = SPECS
+    perturb_prob: float = 0.5
+    num_actions: int = NUM_CELLS
+
+    def episodes(self, key, n: int):
+        return spec_examples(training_state, key, n, self.specs, self.perturb_prob)
+
+    def reset(self, start):
+        pos, quat, episode = start
+        return QState(pos=pos, quat=quat, placing=jnp.zeros((), bool),
+                      block=jnp.full((), -1, jnp.int32),
+                      target=_expert_cells(pos, quat, episode),
+                      reward=jnp.zeros((), jnp.float32), t=jnp.zeros((), jnp.int32),
+                      episode=episode)
+
+    def instruction(self, start):
+        return goal_vector(start[2].tokens).astype(jnp.int8)
+
+    def step(self, state: QState, action):
+        action = jnp.asarray(action, jnp.int32)
+        cell = jnp.stack([action // grid.GRID_SIZE, action % grid.GRID_SIZE])
+        top, _ = grid.top_down_view(state.pos, state.quat)
+        target = jnp.where(state.placing, state.target[1], state.target[0])
+        reward = -_cell_distance(action, target)
+        pos, quat = place_poses(state.pos, state.quat, state.block, cell)
+        picked = state.replace(placing=jnp.ones((), bool), block=top[cell[0], cell[1]],
+                               reward=reward)
+        placed = state.replace(pos=pos, quat=quat, placing=jnp.zeros((), bool),
+                               block=jnp.full((), -1, jnp.int32),
+                               target=_expert_cells(pos, quat, state.episode), reward=reward,
+                               t=state.t + 1)
+        return jax.tree.map(lambda a, b: jnp.where(state.placing, a, b), placed, picked)
+
+    def observe(self, state: QState):
+        return {"pos": state.pos, "quat": state.quat, "placing": state.placing,
+                "block": state.block.astype(jnp.int8)}
+
+    def expert_action(self, state: QState):
+        return jnp.where(state.placing, state.target[1], state.target[0])
+
+    def reward(self, state: QState):
+        return state.reward
+
+    def terminal(self, state: QState):
+        nothing = jnp.zeros(scene.NUM_BLOCKS, bool)
+        return ~state.placing & env.goal_reached_poses(state.pos, nothing, state.episode)
+
+    def done(self, state: QState):
+        return self.terminal(state) | (state.t >= state.episode.max_steps)
+
+
+def decision_goals(goals, block, placing):
+    """float32 (B, Q_GOAL_DIM): CQL's goal inputs of constraint vectors (B, GOAL_DIM), the
+    block the pick took int (B,) (-1: none) and placing bool (B,)."""
+    placing = jnp.asarray(placing, jnp.float32)
+    taken = jax.nn.one_hot(block, scene.NUM_BLOCKS) * placing[:, None]
+    return jnp.concatenate([jnp.asarray(goals, jnp.float32), taken, placing[:, None]], -1)
+
+
+def q_inputs(stored, instruction):
+    """The Q-network's (conditions (B, 24, 24, 2), goal inputs (B, Q_GOAL_DIM)) of stored
+    observations (KukaCollector.observe) and constraint vectors int8 (B, GOAL_DIM): the view
+    of the blocks as they rest (the picked one still in it, as a policy sees it before it
+    moves)."""
+    conditions = jax.vmap(lambda p, q: condition_from_view(*grid.top_down_view(p, q)))(
+        stored["pos"], stored["quat"])
+    return conditions, decision_goals(instruction, stored["block"].astype(jnp.int32),
+                                      stored["placing"])
+
+
+def q_decide(q_fn, conditions, goals):
+    """task.Action (B leading): CQL's greedy move: the pick cell of the highest Q-value, then
+    the place cell of the highest Q-value given the block on top at the pick cell (q_fn(goal
+    inputs (B, Q_GOAL_DIM)) -> (B, NUM_CELLS) on the conditions (B, 24, 24, 2))."""
+    b = goals.shape[0]
+    none = jnp.zeros((b,), bool)
+    pick = jnp.argmax(q_fn(decision_goals(goals, jnp.full((b,), -1), none)), -1)
+    top, _ = view_of_condition(conditions)
+    block = top.reshape(b, -1)[jnp.arange(b), pick]
+    place = jnp.argmax(q_fn(decision_goals(goals, block, ~none)), -1)
+    return actions_of(jnp.stack([pick, place], -1))
+
+
+def q_input_shapes() -> dict:
+    """The Q-network's input shapes, as its checkpoints record them."""
+    return {**input_shapes(), "goal": [1, Q_GOAL_DIM]}
+
+
+def train_cql(out_dir: str, config: cql.CQLTrainConfig = cql.CQLTrainConfig(),
+              net: nets.ConvNetConfig | None = None, specs=SPECS, progress: bool = True,
+              buffer=None):
+    """diffplan.baselines.cql.train_cql with the :class:`KukaCollector` of the specs
+    (config.collectors a multiple of len(specs)); the network has one Q-value per cell."""
+    return cql.train_cql(out_dir, ((KukaCollector(tuple(specs)), 1),), q_inputs,
+                         q_input_shapes(), config,
+                         net or nets.ConvNetConfig(num_outputs=NUM_CELLS),
+                         data=specs_data(specs), progress=progress, buffer=buffer)
+
+
+Q_POLICY_WORLD = PolicyWorld(goal_fn=goal_vector, goal_dim=Q_GOAL_DIM, decide=q_decide)
+"""How the trained CQL acts in the Kuka world (two greedy decisions: :func:`q_decide`)."""
+
+
+# ------------------------------------------------------------------------------- DD-style
+
+DD_HORIZON = 4
+"""Frames of a DD-style trajectory: the blocks now and after each of the (at most 3) placements
+of the training expert's plan (the last frame repeated once its goal holds)."""
+FRAME_DIM = 3 * scene.NUM_BLOCKS
+FRAME_SCALE = np.array([grid.HALF_EXTENT, grid.HALF_EXTENT, 8 * scene.BLOCK_HALF_SIZE[2]],
+                       np.float32)
+"""A frame is the block centres divided by these (x and y by the grid's half extent, z by four
+block heights): values within [-1, 1]."""
+
+
+def block_frame(pos):
+    """float32 (..., FRAME_DIM): the DD-style planner's state of block centres pos (..., 4, 3)."""
+    pos = jnp.asarray(pos, jnp.float32)
+    return (pos / FRAME_SCALE).reshape(pos.shape[:-2] + (FRAME_DIM,))
+
+
+def frame_pos(frame):
+    """float32 (..., 4, 3): the block centres of frames (..., FRAME_DIM) (block_frame's inverse)."""
+    frame = jnp.asarray(frame, jnp.float32)
+    return frame.reshape(frame.shape[:-1] + (scene.NUM_BLOCKS, 3)) * FRAME_SCALE
+
+
+def observe_blocks(state):
+    """The DD-style planner's observation of a physical state: its block frame (FRAME_DIM,)
+    (block poses, as Decision Diffuser's Kuka state; more than the planner's top-down view)."""
+    return block_frame(physics.block_pos(state.data))
+
+
+def dd_example(key, spec, perturb_prob: float = 0.5):
+    """(trajectory float32 (FRAME_DIM, DD_HORIZON), goal vector (GOAL_DIM,), actions int32
+    (DD_HORIZON - 1, 2) the expert's flat (pick, place) cells between consecutive frames, moves
+    bool (DD_HORIZON - 1,) which of them are placements still needed): a training state
+    (``training.training_state``) and the training expert's placements from there, made as the
+    primitive makes them (:func:`place_poses`, no physics)."""
+    pos, quat, episode = training_state(key, spec, perturb_prob)
+    nothing = jnp.zeros(scene.NUM_BLOCKS, bool)
+    frames, actions, moves = [block_frame(pos)], [], []
+    for _ in range(DD_HORIZON - 1):
+        step = expert.decide(pos, nothing, episode)
+        move = ~env.goal_reached_poses(pos, nothing, episode)
+        placed, turned = place_poses(pos, quat, step.block, step.action[2:])
+        pos = jnp.where(move, placed, pos)
+        quat = jnp.where(move, turned, quat)
+        frames.append(block_frame(pos))
+        actions.append(jnp.stack([cell_index(step.action[:2]), cell_index(step.action[2:])]))
+        moves.append(move)
+    return (jnp.stack(frames, -1), goal_vector(episode.tokens), jnp.stack(actions),
+            jnp.stack(moves))
+
+
+def dd_trajectories(key, batch_size: int, specs=SPECS, perturb_prob: float = 0.5):
+    """(trajectories float32 (B, FRAME_DIM, DD_HORIZON), goal vectors (B, GOAL_DIM)): the
+    DD-style diffusion model's data (``dd.DDBatchFn``), every spec the same share."""
+    return spec_examples(dd_example, key, batch_size, specs, perturb_prob)[:2]
+
+
+def id_batch(key, batch_size: int, specs=SPECS, perturb_prob: float = 0.5):
+    """(frames (B, FRAME_DIM), next frames (B, FRAME_DIM), expert cells int32 (B, 2)): one
+    needed placement of each example, uniform among them (every training state needs one)."""
+    traj, _, actions, moves = spec_examples(dd_example, key, batch_size, specs, perturb_prob)
+    u = jax.random.uniform(jax.random.fold_in(key, 1), (batch_size,))
+    j = jnp.floor(u * moves.sum(-1)).astype(jnp.int32)
+    rows = jnp.arange(batch_size)
+    return traj[rows, :, j], traj[rows, :, j + 1], actions[rows, j]
+
+
+def dd_config(**overrides):
+    """The Kuka DD-style planner's temporal UNet (4 frames of 12 values: a kernel of 3)."""
+    return dd.DDConfig(**{"horizon": DD_HORIZON, "cells": FRAME_DIM, "kernel": 3, **overrides})
+
+
+def id_config(**overrides):
+    """Its inverse dynamics: the (pick, place) cells, two heads of NUM_CELLS."""
+    return dd.IDConfig(**{"num_actions": HEADS * NUM_CELLS, **overrides})
+
+
+def train_dd(out_dir: str, config: dd.DDTrainConfig = dd.DDTrainConfig(),
+             model_config: dd.DDConfig | None = None, specs=SPECS, progress: bool = True):
+    """diffplan.baselines.dd.train_dd on :func:`dd_trajectories` (batch a multiple of
+    len(specs))."""
+    return dd.train_dd(out_dir, functools.partial(dd_trajectories, specs=specs), GOAL_DIM,
+                       config, model_config or dd_config(), data=specs_data(specs),
+                       progress=progress)
+
+
+def train_inverse_dynamics(out_dir: str, config: dd.DDTrainConfig = dd.DDTrainConfig(),
+                           specs=SPECS, progress: bool = True):
+    """diffplan.baselines.dd.train_inverse_dynamics on :func:`id_batch`."""
+    return dd.train_inverse_dynamics(out_dir, functools.partial(id_batch, specs=specs), config,
+                                     id_config(), FRAME_DIM, data=specs_data(specs),
+                                     progress=progress)
+
+
+def _frame_identity(frame):
+    return frame
+
+
+DD_POLICY_WORLD = PolicyWorld(goal_fn=goal_vector, goal_dim=GOAL_DIM, heads=HEADS,
+                              action_fn=actions_of, frame_fn=_frame_identity,
+                              observe=observe_blocks)
+"""How the DD-style planner acts in the Kuka world: it observes block poses
+(:func:`observe_blocks`), its inverse dynamics' two heads are the pick and place cells."""
+POLICY_WORLDS = {"bc": POLICY_WORLD, "cql": Q_POLICY_WORLD, "dd": DD_POLICY_WORLD}
+"""The world each Kuka baseline acts in (``diffplan.baselines.policies.load_policy``)."""

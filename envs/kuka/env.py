@@ -63,14 +63,19 @@ def satisfied(state: State):
     return metrics.satisfied(on_matrix(state), state.episode.constraints)
 
 
+def goal_reached_poses(pos, held, episode: Episode):
+    """bool (): the episode's instructed relations hold for block centres pos float (4, 3) and
+    held bool (4,) (and, for stacking, the four blocks stand in one tower)."""
+    valid = episode.constraints[:, 0] >= 0
+    relations = jnp.all(metrics.satisfied(metrics.on_matrix(pos, held), episode.constraints)
+                        | ~valid)
+    return relations & (metrics.single_tower(pos, held) | ~episode.tower)
+
+
 def goal_reached(state: State):
-    """bool (): the instructed relations hold (and, for stacking, the four blocks stand in one
-    tower)."""
-    ep = state.episode
-    valid = ep.constraints[:, 0] >= 0
-    relations = jnp.all(satisfied(state) | ~valid)
-    tower = metrics.single_tower(physics.block_pos(state.data), physics.held(state.data))
-    return relations & (tower | ~ep.tower)
+    """bool (): :func:`goal_reached_poses` of the state's physical poses."""
+    return goal_reached_poses(physics.block_pos(state.data), physics.held(state.data),
+                              state.episode)
 
 
 def view(state: State):
@@ -85,24 +90,39 @@ def flange_cell(state: State):
 
 
 def resolve(data, action):
-    """What an action means in this physical state.
+    """What an action means in this physical state: :func:`resolve_poses` of its poses."""
+    return resolve_poses(physics.block_pos(data), physics.block_quat(data), physics.held(data),
+                         action)
+
+
+def resolve_poses(pos, quat, held, action):
+    """What an action int (4,) means for blocks at pos float (4, 3), quat (4, 4), held bool (4,).
 
     Returns (block int32 () the block to pick or -1, place float32 (3,) the top-centre target
     of the placed block, pick_xy float32 (2,), place_xy float32 (2,))."""
     action = jnp.asarray(action, jnp.int32)
-    pos, quat = physics.block_pos(data), physics.block_quat(data)
-    held = physics.held(data)
+    pos, quat, held = jnp.asarray(pos), jnp.asarray(quat), jnp.asarray(held, bool)
     top, _ = grid.top_down_view(pos, quat, held)
     block = top[action[0], action[1]]
-    cover = grid.footprints(pos, quat) & ~held[:, None, None]
-    others = cover[:, action[2], action[3]] & (jnp.arange(scene.NUM_BLOCKS) != block)
-    support = jnp.argmax(jnp.where(others, pos[:, 2], -jnp.inf))
-    on_block = others.any()
-    place_xy = jnp.where(on_block, pos[support, :2], grid.cell_center(action[2:]))
-    support_top = jnp.where(on_block, pos[support, 2] + scene.BLOCK_HALF_SIZE[2], 0.0)
+    place, place_xy, _ = place_of(pos, quat, held, block, action[2:])
     pick_xy = jnp.where(block >= 0, pos[jnp.maximum(block, 0), :2],
                         grid.cell_center(action[:2]))
-    return block, primitive.place_target(support_top, place_xy), pick_xy, place_xy
+    return block, place, pick_xy, place_xy
+
+
+def place_of(pos, quat, held, block, cell):
+    """Where ``block`` (int (), -1: none) goes when put at cell int (2,): on the highest other
+    block covering the cell (held ones aside), centred on it, else on the floor at the cell's
+    centre. Returns (place float32 (3,) the top-centre target, place_xy float32 (2,), support
+    int32 () the block it goes on, -1: the floor)."""
+    cover = grid.footprints(pos, quat) & ~jnp.asarray(held, bool)[:, None, None]
+    others = cover[:, cell[0], cell[1]] & (jnp.arange(scene.NUM_BLOCKS) != block)
+    support = jnp.argmax(jnp.where(others, pos[:, 2], -jnp.inf))
+    on_block = others.any()
+    place_xy = jnp.where(on_block, pos[support, :2], grid.cell_center(cell))
+    support_top = jnp.where(on_block, pos[support, 2] + scene.BLOCK_HALF_SIZE[2], 0.0)
+    return (primitive.place_target(support_top, place_xy), place_xy,
+            jnp.where(on_block, support, -1).astype(jnp.int32))
 
 
 def _advance(state: State, data, frames) -> State:
