@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--id-steps", type=int, default=d.id_steps,
                    help=f"DD-style inverse dynamics steps (default {d.id_steps}, batch "
                         f"{d.id_batch_size})")
+    p.add_argument("--dd-change-weight", type=float, default=None, metavar="W",
+                   help="DD-style loss: the entries where a frame differs from frame 0 weigh "
+                        f"1 + W times the others (default: the grid world's {d.change_weight:g}, "
+                        "where 2 of 256 cells change; the Kuka world's 0, where most of the 12 "
+                        "block-state values do)")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                    help="write a checkpoint every N steps in every run (default: BC / CQL "
                         f"{b.checkpoint_every}, DD {d.checkpoint_every}: minutes on this CPU)")
@@ -113,7 +118,17 @@ def configs(args):
             cql.CQLTrainConfig(seed=args.seed, steps=args.cql_steps,
                                buffer_size=args.cql_buffer, **every),
             dd.DDTrainConfig(seed=args.seed, steps=args.dd_steps, id_steps=args.id_steps,
-                             **every))
+                             change_weight=_change_weight(args), **every))
+
+
+def _change_weight(args) -> float:
+    if args.dd_change_weight is not None:
+        return args.dd_change_weight
+    if args.world == "kuka":
+        from envs.kuka.baselines import DD_CHANGE_WEIGHT
+
+        return DD_CHANGE_WEIGHT
+    return dd.DDTrainConfig().change_weight
 
 
 def runs_of(name: str, run_dir: str, mixture=TRAINING_MIXTURE, per_setting: bool = False):
@@ -193,6 +208,8 @@ def main(argv: Sequence[str] | None = None):
     for flag in ("bc_steps", "cql_steps", "dd_steps", "id_steps", "cql_buffer"):
         cli.check_at_least(parser, "--" + flag.replace("_", "-"), getattr(args, flag), 2)
     cli.check_at_least(parser, "--checkpoint-every", args.checkpoint_every, 1)
+    if args.dd_change_weight is not None and not args.dd_change_weight >= 0:
+        parser.error(f"--dd-change-weight must be >= 0, got {args.dd_change_weight}")
     cli.check_at_least(parser, "--seed", args.seed, 0)
     cli.check_output_dir(parser, "--run-dir", args.run_dir)
     if args.ship:

@@ -258,14 +258,17 @@ def test_training_state_of_the_older_format_is_refused_in_one_line(tmp_path, sta
 SHIPPED_PARAMS_SHA256 = {
     # SHA-256 over (key path, dtype, shape, bytes) of every array load_params_for_eval returns,
     # measured with the loader before the checkpoint code became generic over pytrees (the
-    # per-setting BCs: with the loader of the commit that shipped them).
+    # per-setting BCs and CQLs and the Kuka baselines: with the loader of the commit that
+    # shipped them).
     "compile_gridworld": "c509cb4abaf8cf405181d1316a84f9ab4e1421adcb7f91d5dfc479dedeb61ed7",
     "kuka": "f6d5bf148b8ec4c17b0ade4fa540bdc324ccc6d51ab65a7a2c56539a2e89776d",
     "baselines/bc/1o1g": "4b594fce64a1db88373af856742d34b3eb8c0478f3baa8f970a444d719757699",
     "baselines/bc/mo1g": "7d0ab37b07ed4fd8a7ccee4a5c8ae069af021b7db70988cbb7ac8b3c26d31b1e",
     "baselines/bc/p_mo2g": "ac0172ff639bf9eb5bbee963c1990877cf5d85fe63bdf468e8d4d6f457a041d5",
     "baselines/kuka/bc": "07ef07cea1891e3522c56182e1d7c9b9ca369e7f5e1243b650fd5e705257b910",
-    "baselines/cql": "000052dbdf6b97d44d4070c41040b5895af4ae5035e82a092869d1ed85b56e76",
+    "baselines/cql/1o1g": "98c69a3300dc2ae8e9c05738753fe5ba0319d9cdea50d07b4784504245dade7e",
+    "baselines/cql/mo1g": "2f0420dcc1ce00945012ba8e7d9094946c06f3f2c427cee67ebeb27b358342fe",
+    "baselines/cql/p_mo2g": "e0c4f17062d5548cdbf8f6fcf7fb5b5f17bec049bfa3a767480385a2d3036351",
     "baselines/dd/diffusion": "58c3dd84d47decea6ec0cd8cd447e88147c27b912ce675de2d851a93d862e46e",
     "baselines/dd/inverse_dynamics":
         "d9655b85d5336134d4268407a54a07b7e925c24f5331bcbb37e5aa4225d6277f",

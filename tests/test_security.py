@@ -174,7 +174,9 @@ def test_shipped_checkpoints_name_known_keys():
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     known = set(models.BUILTIN) | set(models.ALIASES)
     for rel in ("compile_gridworld", "kuka", "baselines/bc/1o1g", "baselines/bc/mo1g",
-                "baselines/bc/p_mo2g", "baselines/cql", "baselines/kuka/bc",
+                "baselines/bc/p_mo2g", "baselines/cql/1o1g", "baselines/cql/mo1g",
+                "baselines/cql/p_mo2g", "baselines/kuka/bc", "baselines/kuka/cql",
+                "baselines/kuka/dd/diffusion", "baselines/kuka/dd/inverse_dynamics",
                 "baselines/dd/diffusion", "baselines/dd/inverse_dynamics"):
         meta = ckpt.read_metadata(os.path.join(root, "checkpoints", rel))
         assert meta["model_class"] in known, (rel, meta["model_class"])
