@@ -266,6 +266,11 @@ SHIPPED_PARAMS_SHA256 = {
     "baselines/bc/mo1g": "7d0ab37b07ed4fd8a7ccee4a5c8ae069af021b7db70988cbb7ac8b3c26d31b1e",
     "baselines/bc/p_mo2g": "ac0172ff639bf9eb5bbee963c1990877cf5d85fe63bdf468e8d4d6f457a041d5",
     "baselines/kuka/bc": "07ef07cea1891e3522c56182e1d7c9b9ca369e7f5e1243b650fd5e705257b910",
+    "baselines/kuka/cql": "1694476bcd1d6bf91f8686d31e62bbbc4730792e7f517fc3cf05e4c7612d2861",
+    "baselines/kuka/dd/diffusion":
+        "209b26ee3fc32a4af18a5832d3a44bb7446cb126545925de63119355ff5fd152",
+    "baselines/kuka/dd/inverse_dynamics":
+        "3d96e23620144b890ef05cb6e7989845a3b0626d55df6ac2e033b6e5b295c722",
     "baselines/cql/1o1g": "98c69a3300dc2ae8e9c05738753fe5ba0319d9cdea50d07b4784504245dade7e",
     "baselines/cql/mo1g": "2f0420dcc1ce00945012ba8e7d9094946c06f3f2c427cee67ebeb27b358342fe",
     "baselines/cql/p_mo2g": "e0c4f17062d5548cdbf8f6fcf7fb5b5f17bec049bfa3a767480385a2d3036351",

@@ -355,10 +355,23 @@ def test_train_baselines_cli_refuses_bad_arguments(capsys):
 
     for argv in (["--baselines", "bc,xyz"], ["--bc-steps", "0"], ["--remark", "hi"],
                  ["--ship", "--results", "missing.json"], ["--seed", "-1"],
-                 ["--ship-dir", "elsewhere"], ["--no-train"]):
+                 ["--ship-dir", "elsewhere"], ["--no-train"], ["--dd-change-weight", "-1"],
+                 ["--world", "kuka", "--per-setting"]):
         with pytest.raises(SystemExit) as e:
             tb.main(argv)
         assert e.value.code == 2
     err = capsys.readouterr().err
     assert "only make sense with --ship" in err and "cannot be read" in err
     assert "--seed must be >= 0" in err and "does nothing" in err
+    assert "--dd-change-weight must be >= 0" in err and "--per-setting is the grid" in err
+
+
+def test_train_baselines_dd_change_weight_defaults_to_the_worlds():
+    from envs.kuka.baselines import DD_CHANGE_WEIGHT
+    from experiments import train_baselines as tb
+
+    def weight(argv):
+        return tb.configs(tb.build_parser().parse_args(argv))[2].change_weight
+
+    assert weight([]) == 50.0 and weight(["--world", "kuka"]) == DD_CHANGE_WEIGHT == 0.0
+    assert weight(["--world", "kuka", "--dd-change-weight", "3"]) == 3.0
