@@ -1,5 +1,5 @@
-"""The baselines in the Kuka world (the paper's Table 2 BC and CQL, and a Decision-Diffuser-style planner): the shipped checkpoints
-(``checkpoints/baselines/kuka/<name>``, made by ``python -m experiments.train_baselines
+"""The baselines in the Kuka world (the paper's Table 2 BC, CQL and a Decision-Diffuser-style
+planner): the shipped checkpoints (``checkpoints/baselines/kuka/<name>``, made by ``python -m experiments.train_baselines
 --world kuka --ship``) acting through ``envs.kuka.baselines.POLICY_WORLDS``, run on the same
 seeded episodes as the planner's rows with ``diffplan.baselines.rollout.policy_rollout`` (the
 same primitive and MJX physics, re-observed after every placement) and measured on the final

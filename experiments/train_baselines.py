@@ -55,12 +55,13 @@ def build_parser() -> argparse.ArgumentParser:
     b, c, d = bc.BCTrainConfig(), cql.CQLTrainConfig(), dd.DDTrainConfig()
     p = argparse.ArgumentParser(
         prog="python -m experiments.train_baselines",
-        description="Train the CompILE baselines BC, CQL and DD-style (one model each for the "
-                    "three settings), resuming from the last checkpoint; optionally ship them "
+        description="Train the baselines BC, CQL and DD-style (the grid world's: one model for "
+                    "the three settings, or one per setting; the Kuka world's: one for its four "
+                    "columns), resuming from the last checkpoint; optionally ship them "
                     "to checkpoints/baselines with a NOTE.md each.")
     p.add_argument("--world", choices=WORLDS, default="gridworld",
                    help="whose baselines: the CompILE grid world's (default) or the Kuka "
-                        f"world's ({','.join(KUKA_BASELINES)} so far; runs in DIR/kuka/<name>, "
+                        f"world's ({','.join(KUKA_BASELINES)}; runs in DIR/kuka/<name>, "
                         "shipped to checkpoints/baselines/kuka/<name>)")
     p.add_argument("--baselines", default=None,
                    help="comma-separated baselines to train / ship among bc,cql,dd "

@@ -1,4 +1,5 @@
-"""The Kuka world for the baselines of ``diffplan.baselines`` (the paper's Table 2 BC).
+"""The Kuka world for the baselines of ``diffplan.baselines`` (the paper's Table 2 BC, CQL and
+DD).
 
 As the paper's appendix describes them, the baselines see the world as our planner does (the
 condition channels of :mod:`envs.kuka.task`: the top block's colour and the stack height of
@@ -22,6 +23,12 @@ without physics, from the same training states. A move is two decisions over the
 the pick's and then the place's, one Q-value per cell; the network's goal input also says which
 decision it is and which block the pick took (:func:`decision_goals`), and the policy makes the
 two greedily in turn (:func:`q_decide`). It is evaluated like BC, in physics.
+
+The DD-style planner diffuses over block states (:func:`block_frame`: the four blocks' centres,
+which it observes from the physics, :func:`observe_blocks`): 4-frame trajectories of the
+training expert's next placements made without physics (:func:`dd_example`), conditioned on the
+constraint vector; its inverse dynamics maps two consecutive frames to the pick and place cells
+(two heads), and the move is executed in physics like the others'.
 """
 from __future__ import annotations
 
