@@ -67,7 +67,8 @@ def build_parser():
                    help="stop training at the first evaluation that reaches --target")
     p.add_argument("--batch-size", type=int, default=None,
                    help="training examples per step (default the recipe's: 64 gridworld, a "
-                        "multiple of 64; 32 kuka, a multiple of 8)")
+                        "multiple of the mixture's examples per batch, 64 unless --set "
+                        "mixture=... changes it; 32 kuka, a multiple of its 8 task specs)")
     p.add_argument("--model-size", choices=sorted(MODEL_SIZES), default="default",
                    help="denoiser size ('tiny' is for smoke tests; default 'default')")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
@@ -93,14 +94,14 @@ def check_args(parser, args):
                                  ("--eval-batch", args.eval_batch, 1),
                                  ("--batch-size", args.batch_size, 1)):
         cli.check_at_least(parser, flag, value, minimum)
-    if args.batch_size is not None and args.batch_size % world.batch_multiple:
-        parser.error(f"--batch-size must be a multiple of {world.batch_multiple} for "
-                     f"{world.name}, got {args.batch_size}")
     try:
-        _, config, _ = bw.training(world, args.model_size, 1, args.set,
-                                   batch_size=args.batch_size)
+        _, config, recipe = bw.training(world, args.model_size, 1, args.set,
+                                        batch_size=args.batch_size)
     except ValueError as e:
         parser.error(str(e))
+    if config.batch_size % recipe.batch_multiple:
+        parser.error(f"--batch-size must be a multiple of {recipe.batch_multiple} for this "
+                     f"{world.name} recipe, got {config.batch_size}")
     args.recipe_steps = config.steps
     if (args.max_steps is not None and args.max_steps < config.steps
             and args.max_steps % args.eval_every):

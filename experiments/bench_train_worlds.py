@@ -24,7 +24,6 @@ class World:
     modes: tuple[str, ...]
     default_mode: str
     default_batch: int
-    batch_multiple: int
     train_steps: int
     train_command: str
 
@@ -36,7 +35,7 @@ class World:
 def _kuka_world() -> World:
     from experiments import kuka_spec as ks
 
-    return World("kuka", ("SR",), ks.MODES, ks.MAIN_MODE, ks.TRAIN_BATCH, 8, ks.TRAIN_STEPS,
+    return World("kuka", ("SR",), ks.MODES, ks.MAIN_MODE, ks.TRAIN_BATCH, ks.TRAIN_STEPS,
                  "python -m experiments.kuka_stacking --train")
 
 
@@ -45,7 +44,7 @@ def _grid_world() -> World:
 
     spec = SPECS["p_mo2g"]
     return World("gridworld", ("SR", "SR_ordered"), ("on_the_fly", "warm_start"), "warm_start",
-                 spec.batch_size, 64, spec.train_steps,
+                 spec.batch_size, spec.train_steps,
                  "python -m experiments.compile_p_mo2g --train")
 
 

@@ -174,3 +174,16 @@ def test_settings_reach_the_training_and_the_model():
                                     "ema_decay=0.99"])
     assert (config.steps, config.lr, config.ema_decay) == (1000, 0.002, 0.99)
     assert config.warmup_steps <= 100 and model.cross_attn_levels == (1, 2)
+
+
+def test_batch_size_follows_the_recipe_mixture():
+    """A smaller mixture allows a smaller batch: the check is the recipe's, not a constant."""
+    from envs.gridworld.training import Recipe as GridRecipe
+    from envs.kuka.training import Recipe as KukaRecipe
+
+    assert GridRecipe().batch_multiple == 64 and KukaRecipe().batch_multiple == 8
+    parser = bench_train.build_parser()
+    args = parser.parse_args(["--batch-size", "32", "--set",
+                              'mixture=[["p_mo2g", 18], ["mo1g", 9], ["1o1g", 5]]'])
+    world, *_ = bench_train.check_args(parser, args)
+    assert world.name == "gridworld"

@@ -230,6 +230,11 @@ class Recipe:
                                      goal_loss_weight=self.goal_loss_weight,
                                      path_near_agent_weight=self.path_near_agent_weight)
 
+    @property
+    def batch_multiple(self) -> int:
+        """A batch size must be a multiple of this: the mixture's examples per batch."""
+        return sum(count for _, count in self.mixture)
+
     def init_batch(self):
         """Shapes of one example (every setting's examples have the same shapes)."""
         fn = make_batch_fn(make_config(self.mixture[0][0]))

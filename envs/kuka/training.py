@@ -167,6 +167,11 @@ class Recipe:
 
         return batch_fn
 
+    @property
+    def batch_multiple(self) -> int:
+        """A batch size must be a multiple of this: the number of specs."""
+        return len(self.specs)
+
     def init_batch(self):
         """Shapes of one batch of len(specs) examples."""
         return jax.eval_shape(lambda k: self.batch_fn()(k, len(self.specs)),
