@@ -1,9 +1,10 @@
 """The baselines in the Kuka world (the paper's Table 2 BC, CQL and a Decision-Diffuser-style
-planner): the shipped checkpoints (``checkpoints/baselines/kuka/<name>``, made by ``python -m experiments.train_baselines
---world kuka --ship``) acting through ``envs.kuka.baselines.POLICY_WORLDS``, run on the same
-seeded episodes as the planner's rows with ``diffplan.baselines.rollout.policy_rollout`` (the
-same primitive and MJX physics, re-observed after every placement) and measured on the final
-physical poses after the same rest (``kuka_eval``). The Kuka CLIs' ``--baselines`` rows.
+planner): the shipped checkpoints (``checkpoints/baselines/kuka/<name>``, made by ``python -m
+experiments.train_baselines --world kuka --ship``) acting through
+``envs.kuka.baselines.POLICY_WORLDS``, run on the same seeded episodes as the planner's rows
+with ``diffplan.baselines.rollout.policy_rollout`` (the same primitive and MJX physics,
+re-observed after every placement) and measured on the final physical poses after the same rest
+(``kuka_eval``). The Kuka CLIs' ``--baselines`` rows.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from experiments.harness import CHECKPOINT_ROOT, planner_keys, policy_runner
 
 CHECKPOINT_DIR = os.path.join(CHECKPOINT_ROOT, "baselines", "kuka")
 KUKA_BASELINES = ("bc", "cql", "dd")
-"""The baselines trained for the Kuka world so far."""
+"""The baselines trained for the Kuka world."""
 
 
 def load_baselines(names, root: str | None = None) -> list:

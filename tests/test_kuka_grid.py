@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from envs.kuka import grid, scene
 
@@ -100,3 +102,13 @@ def test_arc_goes_around_the_base_the_short_way():
         # Consecutive samples land in the same or a neighbouring cell: the path is connected.
         assert np.abs(np.diff(cells, axis=0)).max() <= 1
         assert path.sum() == len({tuple(c) for c in cells})
+
+
+@settings(max_examples=50, deadline=None)
+@given(row=st.integers(0, grid.GRID_SIZE - 1), col=st.integers(0, grid.GRID_SIZE - 1))
+def test_flat_cell_index_round_trip(row, col):
+    """cell_of inverts cell_index (row-major), against plain Python."""
+    index = int(grid.cell_index(np.array([row, col])))
+    assert index == row * grid.GRID_SIZE + col
+    assert tuple(np.asarray(grid.cell_of(index))) == (row, col)
+    assert np.asarray(grid.cell_of(np.array([index, 0]))).shape == (2, 2)

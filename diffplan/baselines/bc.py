@@ -66,7 +66,8 @@ def train_bc(out_dir: str, batch_fn: Callable, input_shapes: Mapping[str, tuple]
     """Trains BC into out_dir (resuming); returns diffplan.train.FitResult.
 
     batch_fn(key, batch_size) -> (conditions (B, H, W, C), goals (B, G), actions int32 (B,) or
-    (B, K): see :func:`bc_loss`): the world's expert examples. input_shapes: {"condition": (1, H, W, C), "goal": (1, G)}.
+    (B, K): see :func:`bc_loss`): the world's expert examples. input_shapes: {"condition":
+    (1, H, W, C), "goal": (1, G)}.
     data: the world's description of the batches, stored in the run's train config (a run of
     other data refuses to resume)."""
     model = nets.GoalConvNet(net)

@@ -32,7 +32,8 @@ from diffplan import checkpoint as ckpt
 from diffplan.baselines import nets
 from diffplan.train import TrainState, fit, run_metadata
 
-__all__ = ["CQLTrainConfig", "Collector", "epsilon_at", "action_dtype", "collect", "collect_buffer",
+__all__ = ["CQLTrainConfig", "Collector", "epsilon_at", "action_dtype", "collect",
+           "collect_buffer",
            "as_q_batch", "network_q_fn", "cql_loss", "make_cql_step", "train_cql"]
 
 
@@ -128,7 +129,8 @@ def _collect(key, world: Collector, collectors: int, moves: int, cfg: CQLTrainCo
         actions = jnp.where(explore, random_actions, v(world.expert_action)(states))
         nxt = v(world.step)(states, actions)
         record = {"obs": v(world.observe)(states), "next_obs": v(world.observe)(nxt),
-                  "instruction": instructions, "action": actions.astype(action_dtype(world.num_actions)),
+                  "instruction": instructions,
+                  "action": actions.astype(action_dtype(world.num_actions)),
                   "reward": v(world.reward)(nxt), "terminal": v(world.terminal)(nxt)}
         fresh = world.episodes(k_new, collectors)
         done = v(world.done)(nxt)

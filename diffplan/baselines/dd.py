@@ -299,8 +299,8 @@ def train_inverse_dynamics(out_dir: str, batch_fn: Callable,
                            data: Mapping | None = None, progress: bool = True):
     """Trains the inverse dynamics (cross-entropy, Adam) into out_dir (resuming) on the world's
     batch_fn(key, batch_size) -> (frames (B, cells), next frames (B, cells), expert actions
-    int32 (B,), or (B, K) for K heads: ``nets.action_cross_entropy``); returns diffplan.train.FitResult. data: as for train_dd, stored in
-    the run's train config."""
+    int32 (B,), or (B, K) for K heads: ``nets.action_cross_entropy``); returns
+    diffplan.train.FitResult. data: as for train_dd, stored in the run's train config."""
     model = InverseDynamics(id_config)
     optimizer = optax.adam(config.id_lr)
 

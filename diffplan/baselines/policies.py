@@ -42,9 +42,10 @@ class PolicyWorld:
     (B,) (heads 1) or (B, heads), mapped to the world's actions by action_fn (None: the
     indices are the actions), or decide's (``nets.greedy_act``: an action chosen in several
     greedy decisions); observe(state) -> what the policy sees of one state (None: the task's
-    condition; e.g. block poses for a planner over block states); for the DD-style planner frame_fn(condition (H, W, C)) -> frame (cells,)
-    and, for its plan metrics, plan_fn(trajectory (cells, horizon), condition) -> plan
-    (H, W, plan_channels) (None: no plan)."""
+    condition; e.g. block poses for a planner over block states); for the DD-style planner
+    frame_fn(condition (H, W, C)) -> frame (cells,) and, for its plan metrics,
+    plan_fn(trajectory (cells, horizon), condition) -> plan (H, W, plan_channels) (None: no
+    plan)."""
 
     goal_fn: Callable
     goal_dim: int

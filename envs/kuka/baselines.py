@@ -131,17 +131,17 @@ def net_config(**overrides) -> nets.ConvNetConfig:
 
 # ------------------------------------------------------------------------------- actions
 
-def cell_index(cell):
-    """int32 (): the flat index of a cell int (2,)."""
-    return (cell[0] * grid.GRID_SIZE + cell[1]).astype(jnp.int32)
+def move_cells(cells):
+    """int32 (2,): the flat (pick, place) cell indices of an action's cells int (4,)
+    (:func:`actions_of`'s inverse on the cells)."""
+    return grid.cell_index(jnp.asarray(cells).reshape(2, 2).T)
 
 
 def actions_of(indices):
     """task.Action with a leading batch axis from flat (pick, place) cell indices int (B, 2):
     the cells, carried around the base between the two cells' centres (the primitive replaces
     the ends by the picked block's and the support's positions)."""
-    indices = jnp.asarray(indices, jnp.int32)
-    cells = jnp.stack([indices // grid.GRID_SIZE, indices % grid.GRID_SIZE], -1)  # (B, 2, 2)
+    cells = grid.cell_of(indices)  # (B, 2, 2)
 
     def one(c):
         waypoints = grid.arc_points(grid.cell_center(c[0]), grid.cell_center(c[1]),
@@ -161,7 +161,7 @@ def bc_example(key, spec, perturb_prob: float = 0.5):
     held = jnp.zeros(scene.NUM_BLOCKS, bool)
     step = expert.decide(pos, held, episode)
     top, height = grid.top_down_view(pos, quat, held)
-    action = jnp.stack([cell_index(step.action[:2]), cell_index(step.action[2:])])
+    action = move_cells(step.action)
     return condition_from_view(top, height), goal_vector(episode.tokens), action
 
 
@@ -231,17 +231,16 @@ class QState:
     episode: Any
 
 
-def _expert_cells(pos, quat, episode):
-    del quat
+def _expert_cells(pos, episode):
+    """int32 (2,): the flat pick and place cells of the training expert's next move."""
     step = expert.decide(pos, jnp.zeros(scene.NUM_BLOCKS, bool), episode)
-    return jnp.stack([cell_index(step.action[:2]), cell_index(step.action[2:])])
+    return move_cells(step.action)
 
 
 def _cell_distance(a, b):
     """float32 (): metres between the centres of flat cells a and b."""
-    cells = jnp.stack([jnp.stack([a // grid.GRID_SIZE, a % grid.GRID_SIZE]),
-                       jnp.stack([b // grid.GRID_SIZE, b % grid.GRID_SIZE])])
-    return jnp.linalg.norm(grid.cell_center(cells[0]) - grid.cell_center(cells[1]))
+    return jnp.linalg.norm(
+        grid.cell_center(grid.cell_of(a)) - grid.cell_center(grid.cell_of(b)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,7 +265,7 @@ class KukaCollector:
         pos, quat, episode = start
         return QState(pos=pos, quat=quat, placing=jnp.zeros((), bool),
                       block=jnp.full((), -1, jnp.int32),
-                      target=_expert_cells(pos, quat, episode),
+                      target=_expert_cells(pos, episode),
                       reward=jnp.zeros((), jnp.float32), t=jnp.zeros((), jnp.int32),
                       episode=episode)
 
@@ -275,7 +274,7 @@ class KukaCollector:
 
     def step(self, state: QState, action):
         action = jnp.asarray(action, jnp.int32)
-        cell = jnp.stack([action // grid.GRID_SIZE, action % grid.GRID_SIZE])
+        cell = grid.cell_of(action)
         top, _ = grid.top_down_view(state.pos, state.quat)
         target = jnp.where(state.placing, state.target[1], state.target[0])
         reward = -_cell_distance(action, target)
@@ -284,7 +283,7 @@ class KukaCollector:
                                reward=reward)
         placed = state.replace(pos=pos, quat=quat, placing=jnp.zeros((), bool),
                                block=jnp.full((), -1, jnp.int32),
-                               target=_expert_cells(pos, quat, state.episode), reward=reward,
+                               target=_expert_cells(pos, state.episode), reward=reward,
                                t=state.t + 1)
         return jax.tree.map(lambda a, b: jnp.where(state.placing, a, b), placed, picked)
 
@@ -404,7 +403,7 @@ def dd_example(key, spec, perturb_prob: float = 0.5):
         pos = jnp.where(move, placed, pos)
         quat = jnp.where(move, turned, quat)
         frames.append(block_frame(pos))
-        actions.append(jnp.stack([cell_index(step.action[:2]), cell_index(step.action[2:])]))
+        actions.append(move_cells(step.action))
         moves.append(move)
     return (jnp.stack(frames, -1), goal_vector(episode.tokens), jnp.stack(actions),
             jnp.stack(moves))

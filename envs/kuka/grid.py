@@ -38,6 +38,18 @@ def cell_center(cell) -> jax.Array:
                       HALF_EXTENT - (cell[0] + 0.5) * CELL]).astype(jnp.float32)
 
 
+def cell_index(cell) -> jax.Array:
+    """int32 (): the flat index of a cell int (2,) (row-major over the GRID_SIZE x GRID_SIZE
+    grid)."""
+    return (cell[0] * GRID_SIZE + cell[1]).astype(jnp.int32)
+
+
+def cell_of(index) -> jax.Array:
+    """int32 (..., 2): the cells of flat indices int (...) (:func:`cell_index`'s inverse)."""
+    index = jnp.asarray(index, jnp.int32)
+    return jnp.stack([index // GRID_SIZE, index % GRID_SIZE], -1)
+
+
 def xy_to_cell(xy) -> jax.Array:
     """int32 (..., 2) (row, col) of the cell containing xy float (..., 2), clipped to the grid."""
     xy = jnp.asarray(xy)

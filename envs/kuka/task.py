@@ -99,7 +99,7 @@ def block_cell(top, block_pos, block, values):
     top = jnp.asarray(top)
     centre = grid.block_cells(block_pos)[block]
     flat = jnp.argmax(jnp.where(top == block, values, -jnp.inf).ravel())
-    best = jnp.stack([flat // grid.GRID_SIZE, flat % grid.GRID_SIZE]).astype(jnp.int32)
+    best = grid.cell_of(flat)
     return jnp.where(top[centre[0], centre[1]] == block, centre, best).astype(jnp.int32)
 
 

@@ -173,8 +173,8 @@ class Recipe:
         return len(self.specs)
 
     def init_batch(self):
-        """Shapes of one batch of len(specs) examples."""
-        return jax.eval_shape(lambda k: self.batch_fn()(k, len(self.specs)),
+        """Shapes of one batch of batch_multiple (one per spec) examples."""
+        return jax.eval_shape(lambda k: self.batch_fn()(k, self.batch_multiple),
                               jax.random.PRNGKey(0))
 
     def metadata(self) -> dict:
