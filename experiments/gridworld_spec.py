@@ -45,6 +45,8 @@ class ExperimentSpec:
     prediction: str = "x0"
     detour_prob: float = 0.5
     goal_loss_weight: float = 3.0
+    # The path target on the route's leg after the reference (Recipe.later_leg_value).
+    later_leg_value: float = 1.0
     # Training recipe: 8000 steps of 64, 100 diffusion timesteps (~35-40 min here); the shipped
     # checkpoint, SR and SR_ordered 100.0 on validation and evaluation episodes. Faster recipes
     # measured (docs/benchmarks.md, bench_train): 10 timesteps reach SR and SR_ordered >= 99 on
@@ -109,7 +111,7 @@ class ExperimentSpec:
     def recipe(self):
         from envs.gridworld.training import Recipe
         return Recipe(detour_prob=self.detour_prob, goal_loss_weight=self.goal_loss_weight,
-                      goal_channel=self.goal_channel)
+                      goal_channel=self.goal_channel, later_leg_value=self.later_leg_value)
 
     def train_config(self, seed: int = 0, steps: int | None = None,
                      checkpoint_every: int = 500):

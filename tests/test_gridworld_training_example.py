@@ -128,3 +128,39 @@ def test_path_near_agent_weight_weighs_the_path_around_the_agent():
                                   np.asarray(plain.loss_mask[..., 1:]))
     with pytest.raises(ValueError, match="path_near_agent_weight"):
         make_batch_fn(config, path_near_agent_weight=-1.0)
+
+
+@pytest.mark.parametrize("setting", ["p_mo2g", "1o1g"])
+def test_later_leg_value_marks_the_leg_after_the_reference(setting):
+    """later_leg_value < 1: the same path cells, +1 on a shortest path to the reference (the
+    whole path once it was reached, or without one), later_leg_value on the rest."""
+    from envs.gridworld.training import make_batch_fn
+
+    config = make_config(setting)
+    key = jax.random.PRNGKey(11)
+    plain = np.asarray(make_batch_fn(config, detour_prob=0.5)(key, 48).x0)
+    legs = np.asarray(make_batch_fn(config, detour_prob=0.5, later_leg_value=0.5)(key, 48).x0)
+    np.testing.assert_array_equal(np.delete(plain, PATH_CHANNEL, -1),
+                                  np.delete(legs, PATH_CHANNEL, -1))
+    np.testing.assert_array_equal(plain[..., PATH_CHANNEL] > 0, legs[..., PATH_CHANNEL] > 0)
+    assert set(np.unique(legs[..., PATH_CHANNEL])) <= {-1.0, 0.5, 1.0}
+    later_legs = 0
+    for x in legs:
+        path = x[..., PATH_CHANNEL]
+        agent = tuple(np.argwhere(x[..., 2] > 0)[0])
+        reference = tuple(np.argwhere(x[..., SUBGOAL_CHANNEL] > 0)[0])
+        target = tuple(np.argwhere(x[..., GOAL_CHANNEL] > 0)[0])
+        if reference == target:  # reached, or no reference: one leg
+            assert not np.any(path == 0.5)
+            continue
+        later_legs += np.any(path == 0.5)
+        current = path == 1.0
+        passable = x[..., 0].astype(int) != OBSTACLE_CELL  # seen obstacles; the rest is free
+        assert _connected(current, agent, reference)
+        # The current leg is a shortest path on the true grid, so at least the seen-map distance.
+        assert current.sum() - 1 >= oracle_bfs(passable, reference)[agent]
+        assert _connected((path == 0.5) | (path == 1.0), agent, target)
+    if setting == "p_mo2g":
+        assert later_legs > 0
+    with pytest.raises(ValueError, match="later_leg_value"):
+        make_batch_fn(config, later_leg_value=0.0)

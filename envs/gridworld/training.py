@@ -67,19 +67,37 @@ def _random_detour(key, state: env.State, config: GridConfig, num_moves, max_mov
     return state
 
 
-def _expert_from(state: env.State, episode: Episode, config: GridConfig):
-    """bool (H, W): the cells of a shortest path from the agent's cell through the reference
-    (unless already reached) to the target, ends included."""
+def _route_cells(positions, valid, reference, pending, size: int, later_leg_value: float):
+    """float32 (H, W): the path channel's target of a route (positions int32 (P, 2), valid bool
+    (P,) its entries): ``1`` on the cells up to its first visit of the reference (the whole
+    route when ``pending`` (bool ()) is False: no reference left to reach), ``later_leg_value``
+    on the cells only the rest of the route passes, ``-1`` off the route."""
+    at_reference = jnp.all(positions == reference, axis=-1) & valid & pending
+    first = jnp.where(at_reference.any(), jnp.argmax(at_reference), positions.shape[0])
+    current = bfs.positions_to_mask(positions, size, valid & (jnp.arange(positions.shape[0])
+                                                              <= first))
+    route = bfs.positions_to_mask(positions, size, valid)
+    return jnp.where(current, 1.0, jnp.where(route, later_leg_value, -1.0)).astype(jnp.float32)
+
+
+def _expert_from(state: env.State, episode: Episode, config: GridConfig,
+                 later_leg_value: float = 1.0):
+    """float32 (H, W): the path channel's target (:func:`_route_cells`) of a shortest path from
+    the agent's cell through the reference (unless already reached) to the target, ends
+    included."""
     passable = episode.grid != OBSTACLE_CELL
+    pending = jnp.asarray(config.has_reference) & ~state.reached_reference
     reference = (jnp.where(state.reached_reference, state.agent, episode.reference)
                  if config.has_reference else episode.reference)
     positions, length, _ = expert_path_positions(config, passable, state.agent, episode.target,
                                                  reference)
     valid = jnp.arange(positions.shape[0]) <= length
-    return bfs.positions_to_mask(positions, config.size, valid)
+    return _route_cells(positions, valid, episode.reference, pending, config.size,
+                        later_leg_value)
 
 
-def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_detour: int = 8):
+def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_detour: int = 8,
+                     later_leg_value: float = 1.0):
     """One supervised example: a state along an expert path and the plan from there.
 
     The agent is placed after a uniformly drawn number of expert moves (0..expert_length - 1)
@@ -87,7 +105,12 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
     takes 1..max_detour uniformly random moves (so the model also sees the states an imperfect
     on-the-fly agent reaches). Targets of the generated channels (envs.gridworld.task):
       path      a shortest path from there (through the reference unless it was reached) to
-                the target, ends included (without a detour: the rest of the expert path);
+                the target, ends included (without a detour: the rest of the expert path):
+                +1 on its cells up to the reference (all of them once the reference was
+                reached, and in the settings without one), ``later_leg_value`` on the cells
+                only its leg from the reference to the target passes, -1 elsewhere (below 1 the
+                plan tells the leg the agent is on from the next one, which psi_follow needs
+                where the two legs run side by side or overlap);
       goal      the target cell, whether or not it has been seen (the model must infer it from
                 the instruction and the reference);
       sub-goal  the reference while the agent has not stood on it (P-MO2G), else the target.
@@ -103,11 +126,13 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
         detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done
         num_moves = jnp.where(detour, jax.random.randint(k_moves, (), 1, max_detour + 1), 0)
         state = _random_detour(k_walk, state, config, num_moves, max_detour)
-        path = _expert_from(state, episode, config)
+        path = _expert_from(state, episode, config, later_leg_value)
     else:
         steps = jnp.arange(episode.expert_positions.shape[0])
         remaining = (steps >= index) & (steps <= episode.expert_length)
-        path = bfs.positions_to_mask(episode.expert_positions, config.size, remaining)
+        pending = jnp.asarray(config.has_reference) & ~state.reached_reference
+        path = _route_cells(episode.expert_positions, remaining, episode.reference, pending,
+                            config.size, later_leg_value)
     obs = env.observe(state, config)
     goal = env._cell_mask(episode.target, config.size)
     if config.has_reference:
@@ -116,7 +141,7 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
         next_cell = episode.target
     subgoal = env._cell_mask(next_cell, config.size)
     signed = lambda mask: (mask.astype(jnp.float32) * 2 - 1)[..., None]  # noqa: E731
-    x0 = jnp.concatenate([condition_from_observation(obs), signed(path), signed(goal),
+    x0 = jnp.concatenate([condition_from_observation(obs), path[..., None], signed(goal),
                           signed(subgoal)], axis=-1)
     return x0, episode.tokens, state.seen
 
@@ -143,7 +168,8 @@ def near_agent(agent):
 
 def make_batch_fn(config: GridConfig, goal_channel: bool = True,
                   goal_loss_seen_only: bool = False, detour_prob: float = 0.0,
-                  goal_loss_weight: float = 1.0, path_near_agent_weight: float = 0.0):
+                  goal_loss_weight: float = 1.0, path_near_agent_weight: float = 0.0,
+                  later_leg_value: float = 1.0):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of examples of one setting.
 
     goal_channel=False trains without goal information (the paper's "- g" ablation: the goal
@@ -153,8 +179,12 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     sub-goal channels in the loss relative to the path channel's (each is one cell of H x W).
     path_near_agent_weight: extra weight of the path channel on the agent's cell and its 4
     neighbours (:func:`near_agent`; 0: every cell weighs 1), where the plan's path decides the
-    next move of the paper's psi (``GridTask(psi_kind="follow")``).
+    next move of the paper's psi (``GridTask(psi_kind="follow")``). later_leg_value: the path
+    target on the route's leg after the reference (:func:`training_example`; 1: one value
+    for the whole route).
     """
+    if not 0 < later_leg_value <= 1:
+        raise ValueError(f"later_leg_value must be in (0, 1], got {later_leg_value}")
     if not path_near_agent_weight >= 0:
         raise ValueError(f"path_near_agent_weight must be >= 0, got {path_near_agent_weight}")
     if not goal_loss_weight > 0:
@@ -165,8 +195,9 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
 
     def batch_fn(key, batch_size):
         keys = training_episode_keys(key, batch_size)
-        x0, tokens, seen = jax.vmap(training_example, in_axes=(0, None, None))(
-            keys, config, detour_prob)
+        example = functools.partial(training_example, config=config, detour_prob=detour_prob,
+                                    later_leg_value=later_leg_value)
+        x0, tokens, seen = jax.vmap(example)(keys)
         ones = jnp.ones(x0.shape[:-1], jnp.float32)
         path = ones + path_near_agent_weight * jax.vmap(near_agent)(x0[..., AGENT_CHANNEL])
         goal = goal_loss_weight * (seen.astype(jnp.float32) if goal_loss_seen_only else ones)
@@ -212,7 +243,8 @@ class Recipe:
     """The grid world's training-data recipe (what ``experiments.compile_*`` --train uses).
 
     mixture: (setting, examples per batch of sum(counts)). detour_prob / goal_loss_weight: see
-    :func:`make_batch_fn`, and so is path_near_agent_weight. goal_channel: False for the "- g"
+    :func:`make_batch_fn`, and so are path_near_agent_weight and later_leg_value (the path
+    target on the route's leg after the reference). goal_channel: False for the "- g"
     ablation. language: the phrasing of the examples' instructions ("mixed": canonical half of
     the time, else one of the training paraphrases; the held-out phrasings never).
     """
@@ -223,12 +255,14 @@ class Recipe:
     goal_channel: bool = True
     language: str = "mixed"
     path_near_agent_weight: float = 0.0
+    later_leg_value: float = 1.0
 
     def batch_fn(self):
         return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
                                      detour_prob=self.detour_prob,
                                      goal_loss_weight=self.goal_loss_weight,
-                                     path_near_agent_weight=self.path_near_agent_weight)
+                                     path_near_agent_weight=self.path_near_agent_weight,
+                                     later_leg_value=self.later_leg_value)
 
     @property
     def batch_multiple(self) -> int:
@@ -248,7 +282,9 @@ class Recipe:
                 "vocabulary": list(grammar.VOCAB),
                 # Recorded only when used, so that checkpoints from before it existed match.
                 **({"path_near_agent_weight": self.path_near_agent_weight}
-                   if self.path_near_agent_weight else {})}
+                   if self.path_near_agent_weight else {}),
+                **({"later_leg_value": self.later_leg_value}
+                   if self.later_leg_value != 1.0 else {})}
 
 
 # ------------------------------------------------------------------ the episodes of a run
