@@ -3,7 +3,10 @@
 Planning tensor of the grid world (H x W x (C + G), C = 5, G = 3):
   channel 0  cell token id (float-valued integer; see env.Observation.cells),
   channels 1-4  obstacle seen, agent, visited, visible (0/1),
-  channel 5  path: +1 on the cells of the plan, -1 elsewhere,
+  channel 5  path: +1 on the cells of the plan, -1 elsewhere (a denoiser trained with
+             ``Recipe.later_leg_value`` v < 1 marks the cells only the plan's leg after the
+             reference passes with v: both psis read any value > 0 as path and prefer the
+             stronger mark),
   channel 6  goal estimate: +1 on the believed target cell, -1 elsewhere,
   channel 7  sub-goal: +1 on the cell the instruction asks for next (in P-MO2G the reference
              until the agent has stood on it, then the target; the target in the other
