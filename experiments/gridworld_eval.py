@@ -131,7 +131,7 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
 
 def metrics_row(method, rollout, episodes, seconds, has_reference):
     """Contract 2's row of a rollout (numpy) on its episodes."""
-    from envs.gridworld.metrics import plan_metrics, trajectory_metrics
+    from envs.gridworld.metrics import per_phrasing_metrics, plan_metrics, trajectory_metrics
 
     row = {"method": method}
     row.update(trajectory_metrics(rollout.positions, rollout.steps, episodes.target,
@@ -146,6 +146,10 @@ def metrics_row(method, rollout, episodes, seconds, has_reference):
         row["fallback_percent"] = (100.0 * float(np.sum(rollout.fallback_moves))
                                    / max(int(np.sum(rollout.steps)), 1))
     row["seconds"] = float(seconds)
+    phrasings = per_phrasing_metrics(rollout.positions, rollout.steps, episodes,
+                                     has_reference)
+    if len(phrasings) > 1:
+        row["per_phrasing"] = phrasings
     return row
 
 
@@ -186,6 +190,18 @@ TABLE_COLUMNS = (("method", "{:<22}", "method"), ("SR", "{:>7.2f}", "SR"),
 def format_table(rows) -> str:
     """A plain-text table of result rows (missing values shown as '-')."""
     return _table(rows, TABLE_COLUMNS)
+
+
+def format_phrasings(rows) -> str:
+    """One line per row that mixes phrasings: SR (/ SR_ordered) and episodes of each template
+    (#index), so a phrasing the planner misreads shows; '' when no row mixes phrasings."""
+    def rate(p):
+        return f"{p['SR']:.1f}" + (f"/{p['SR_ordered']:.1f}" if "SR_ordered" in p else "")
+
+    lines = [f"  {row['method']}: " + " ".join(
+        f"#{p['template']} {rate(p)} ({p['episodes']})" for p in row["per_phrasing"])
+        for row in rows if "per_phrasing" in row]
+    return "per phrasing, SR (/ ordered) (episodes):\n" + "\n".join(lines) if lines else ""
 
 
 def format_intervals(rows, seeds) -> str:

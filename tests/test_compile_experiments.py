@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from envs.gridworld import metrics
+from envs.gridworld import grammar, metrics
 from experiments import gridworld_cli, gridworld_spec, harness
 
 EXPECTED_ROW_FIELDS = {"method", "SR", "GD", "path_precision", "path_recall", "path_f1",
@@ -179,6 +179,12 @@ def test_language_all_makes_a_row_per_phrasing(tiny_run):
     assert [r["language"] for r in both["rows"]] == [
         language for language in ("canonical", "paraphrased", "unseen") for _ in range(3)]
     assert both["language"] == "all"
+    assert "per_phrasing" not in both["rows"][0]  # one phrasing: nothing to split
+    for row in both["rows"][3:]:  # each phrasing's own rates, on its own episodes
+        split = row.get("per_phrasing", [{"template": None, "episodes": 4}])
+        assert sum(p["episodes"] for p in split) == 4
+        pool = set(grammar.template_pool("p_mo2g", row["language"]).tolist()) | {None}
+        assert {p["template"] for p in split} <= pool
     canonical = gridworld_cli.main("p_mo2g", argv)
     for key in ("SR", "SR_ordered", "GD", "path_f1"):
         assert both["rows"][0][key] == canonical["rows"][0][key]

@@ -121,3 +121,8 @@ def test_fill_template_matches_render(fill_batch, setting):
     for row, (ti, ri, gi, di) in zip(tokens[: len(fillings)], fillings):
         expected = grammar.render(setting, int(ti), int(ri), int(gi), int(di))
         np.testing.assert_array_equal(row, grammar.encode(expected))
+
+
+def test_phrasings_are_the_settings_templates():
+    assert grammar.phrasings(True) == grammar.TEMPLATES["p_mo2g"] == grammar.TEMPLATES["p_mo2g_far"]
+    assert grammar.phrasings(False) == grammar.TEMPLATES["mo1g"] == grammar.TEMPLATES["1o1g"]

@@ -112,3 +112,32 @@ def test_spl_of_the_expert_is_its_success_rate():
     expert = np.zeros((2, 8, 8), bool)
     m = trajectory_metrics(positions, steps, target, expert, expert_length=np.array([4, 2]))
     assert m["SR"] == 100.0 and m["SPL"] == pytest.approx((1.0 + 0.5) / 2)
+
+
+def test_per_phrasing_splits_by_template():
+    """Three episodes, templates 8, 3, 8: the ordered success of each phrasing on its own
+    episodes; a row that mixes phrasings prints one line per template."""
+    from types import SimpleNamespace
+
+    from envs.gridworld import grammar
+    from experiments.gridworld_eval import format_phrasings
+
+    positions = np.array([
+        [[0, 0], [1, 0], [1, 1], [1, 1]],  # via the reference: ordered success
+        [[0, 0], [0, 1], [1, 1], [1, 1]],  # reference skipped: success, not ordered
+        [[0, 0], [0, 1], [0, 2], [0, 3]],  # never reaches the target
+    ])
+    episodes = SimpleNamespace(template=np.array([8, 3, 8]),
+                               target=np.array([[1, 1]] * 3), reference=np.array([[1, 0]] * 3),
+                               expert_path=np.stack([_path_mask([(0, 0), (1, 0), (1, 1)])] * 3))
+    rows = metrics.per_phrasing_metrics(positions, np.array([2, 2, 3]), episodes, True)
+    assert [(r["template"], r["episodes"]) for r in rows] == [(3, 1), (8, 2)]
+    assert [(r["SR"], r["SR_ordered"]) for r in rows] == [(100.0, 0.0), (50.0, 50.0)]
+    assert rows[1]["phrasing"] == grammar.phrasings(True)[8]
+    goal_only = metrics.per_phrasing_metrics(positions, np.array([2, 2, 3]), episodes, False)
+    assert "SR_ordered" not in goal_only[0]
+    assert goal_only[0]["phrasing"] == grammar.phrasings(False)[3]
+    text = format_phrasings([{"method": "on-the-fly, unseen", "per_phrasing": rows},
+                             {"method": "on-the-fly"}])
+    assert text.splitlines()[1:] == ["  on-the-fly, unseen: #3 100.0/0.0 (1) #8 50.0/50.0 (2)"]
+    assert format_phrasings([{"method": "on-the-fly"}]) == ""

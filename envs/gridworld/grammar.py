@@ -83,6 +83,13 @@ denoiser of one reads the other's instructions)."""
 
 UNSEEN_TEMPLATES = (8, 9, 10, 11)
 
+
+def phrasings(has_reference: bool) -> tuple[str, ...]:
+    """The twelve phrasings (:data:`TEMPLATES`) of the settings with a reference (P-MO2G,
+    P-MO2G-far) or without one (1O1G, MO1G): an episode's ``template`` indexes them."""
+    return _VIA_REFERENCE if has_reference else _GOAL_ONLY
+
+
 SLOT_REF, SLOT_TARGET, SLOT_DIR = -1, -2, -3
 _SLOT_NAMES = ("{ref}", "{target}", "{dir}")
 """Slot k of a template is the marker -(k + 1) (diffplan.language's convention)."""

@@ -15,6 +15,7 @@ every number from what the agent actually did.
   S_i * l_i / max(p_i, l_i), in [0, 1]: l_i the expert's moves (the shortest path with the
   whole map known, via the reference where there is one), p_i the agent's moves (collisions
   included: a bump costs a move), S_i success (SR_ordered's where there is a reference).
+- per phrasing: SR (and SR_ordered) over the episodes of each instruction template.
 """
 from __future__ import annotations
 
@@ -87,3 +88,29 @@ def plan_metrics(first_plan_path, expert_path):
     cell is on the path where the value > 0) against the expert path."""
     precision, recall, f1 = precision_recall_f1(np.asarray(first_plan_path) > 0, expert_path)
     return {"plan_precision": precision, "plan_recall": recall, "plan_f1": f1}
+
+
+def per_phrasing_metrics(positions, steps, episodes, has_reference: bool) -> list[dict]:
+    """SR (and SR_ordered) over the episodes of each instruction template that occurs, so that
+    one phrasing the planner misreads shows instead of being averaged away.
+
+    Args: positions int (N, T+1, 2) and steps int (N,) as in :func:`trajectory_metrics`;
+    episodes an Episode batch (N,) (its template, target, reference, expert_path).
+    Returns [{"template": int, "phrasing": str (slots as {ref} / {target} / {dir}),
+    "episodes": int, "SR": float (and "SR_ordered" with a reference)}] by template index.
+    """
+    from envs.gridworld import grammar
+
+    positions, steps = np.asarray(positions), np.asarray(steps)
+    templates = np.asarray(episodes.template)
+    rows = []
+    for t in np.unique(templates):
+        keep = templates == t
+        part = trajectory_metrics(positions[keep], steps[keep], np.asarray(episodes.target)[keep],
+                                  np.asarray(episodes.expert_path)[keep],
+                                  np.asarray(episodes.reference)[keep] if has_reference
+                                  else None)
+        rows.append({"template": int(t), "phrasing": grammar.phrasings(has_reference)[int(t)],
+                     "episodes": int(keep.sum()),
+                     **{k: part[k] for k in ("SR", "SR_ordered") if k in part}})
+    return rows
