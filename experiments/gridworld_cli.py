@@ -77,7 +77,7 @@ def _print_summary(spec, args, seeds, result) -> None:
         print(f"{excluded} of {args.episodes * len(seeds)} episodes equal a training episode of "
               "this checkpoint and are left out of the planner's rows")
     print(ge.format_table(result["rows"]))
-    if phrasings := ge.format_phrasings(result["rows"]):
+    if phrasings := harness.format_phrasings(result["rows"]):
         print(phrasings)
     if len(seeds) > 1:
         print(ge.format_intervals(result["rows"], seeds))

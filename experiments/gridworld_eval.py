@@ -192,18 +192,6 @@ def format_table(rows) -> str:
     return _table(rows, TABLE_COLUMNS)
 
 
-def format_phrasings(rows) -> str:
-    """One line per row that mixes phrasings: SR (/ SR_ordered) and episodes of each template
-    (#index), so a phrasing the planner misreads shows; '' when no row mixes phrasings."""
-    def rate(p):
-        return f"{p['SR']:.1f}" + (f"/{p['SR_ordered']:.1f}" if "SR_ordered" in p else "")
-
-    lines = [f"  {row['method']}: " + " ".join(
-        f"#{p['template']} {rate(p)} ({p['episodes']})" for p in row["per_phrasing"])
-        for row in rows if "per_phrasing" in row]
-    return "per phrasing, SR (/ ordered) (episodes):\n" + "\n".join(lines) if lines else ""
-
-
 def format_intervals(rows, seeds) -> str:
     """Per-seed SR and the pooled 95% intervals, one line per row."""
     return _intervals(rows, seeds, 22)

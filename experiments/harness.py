@@ -173,6 +173,20 @@ def format_intervals(rows, seeds, width: int) -> str:
     return "\n".join(lines)
 
 
+def format_phrasings(rows, unit: str = "episodes") -> str:
+    """One line per row that mixes phrasings (its ``per_phrasing``): SR (/ SR_ordered) of each
+    template (#index) over its own episodes, or constraints with ``unit="constraints"`` (the
+    Kuka world), and how many, so a phrasing the planner misreads shows; '' when no row mixes
+    phrasings."""
+    def rate(p):
+        return f"{p['SR']:.1f}" + (f"/{p['SR_ordered']:.1f}" if "SR_ordered" in p else "")
+
+    lines = [f"  {row['method']}: " + " ".join(
+        f"#{p['template']} {rate(p)} ({p[unit]})" for p in row["per_phrasing"])
+        for row in rows if "per_phrasing" in row]
+    return (f"per phrasing, SR (/ ordered) ({unit}):\n" + "\n".join(lines)) if lines else ""
+
+
 def machine() -> str:
     """The machine line of a results JSON."""
     return (f"{os.cpu_count()} CPU cores, jax {jax.__version__} on "

@@ -117,6 +117,8 @@ def _print_summary(kind, args, seeds, checkpoint, all_rows) -> None:
           + f"; success on the physical poses after {args.settle:g} s at rest (SR strict, "
             "contract 4; SR_Diff Diffuser's check; SPL over placements)")
     print(ke.format_table(all_rows))
+    if phrasings := harness.format_phrasings(all_rows, "constraints"):
+        print(phrasings)
     if len(seeds) > 1:
         print(harness.format_intervals(all_rows[1:], seeds, 46))
     print("paper (single / multi): " + "; ".join(

@@ -149,6 +149,8 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
     """A results row from the final physical states (numpy). settle_changed counts the
     instructed constraints whose strict success changed while the blocks settled (0 when the
     final states have no released poses)."""
+    from envs.kuka import metrics
+
     strict, loose = constraint_success(episodes, final)
     valid = np.asarray(episodes.constraints)[..., 0] >= 0
     tower = _towers(final)
@@ -169,6 +171,9 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
         "settle_changed": changed,
         "seconds": float(seconds),
     }
+    phrasings = metrics.per_phrasing_metrics(episodes.tokens, episodes.constraints, strict)
+    if len(phrasings) > 1:
+        row["per_phrasing"] = phrasings
     if "denoiser_calls" in final:
         row["denoiser_calls_per_episode"] = float(np.mean(final["denoiser_calls"]))
         row["plans_per_episode"] = float(np.mean(final["num_plans"]))

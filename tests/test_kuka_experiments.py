@@ -184,6 +184,11 @@ def test_rearrangement_planner_end_to_end_with_paraphrases(train_dir, tmp_path):
     rows = result["rows"][1:]
     assert [r["language"] for r in rows] == ["canonical"] * 2 + ["paraphrased"] * 2
     assert all("paraphrased" in r["method"] for r in rows[2:])
+    assert not any("per_phrasing" in r for r in rows[:2])  # canonical: one phrasing
+    for row in rows[2:]:  # each paraphrase's constraints counted under it, the rest nowhere
+        split = row.get("per_phrasing", [{"template": 1, "constraints": row["constraints"]}])
+        assert sum(p["constraints"] for p in split) == row["constraints"]
+        assert all(1 <= p["template"] <= 7 for p in split)
     # The states are those of the main (canonical) row's episodes.
     states = _load_states(tmp_path / "s.npz")
     for c, text in zip(states["constraints"], states["instruction"]):

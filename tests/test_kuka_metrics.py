@@ -72,3 +72,22 @@ def test_single_tower():
     two = [(0.6, 0, H), (0.6, 0, 3 * H), (-0.6, 0, H), (-0.6, 0, 3 * H)]
     assert not bool(metrics.single_tower(*_state(*two)))
     assert not bool(metrics.single_tower(pos, np.array([False, False, False, True])))
+
+
+def test_per_phrasing_counts_each_constraint_under_its_sentence():
+    """Hand-written instructions: each instructed constraint is counted under the phrasing of
+    its own sentence (the tower sentence is not a relation), absent rows nowhere."""
+    from envs.kuka import grammar
+
+    text = ["Build a tower of all four blocks. Put the red block below the green block.",
+            "Place the green block on the red block. Put the red block below the blue block. "
+            "Place the blue block on the yellow block."]
+    tokens = np.stack([grammar.encode(t) for t in text])
+    constraints = np.array([[[1, 0], [-1, -1], [-1, -1]], [[1, 0], [2, 0], [2, 3]]])
+    strict = np.array([[False, False, False], [True, True, False]])
+    rows = metrics.per_phrasing_metrics(tokens, constraints, strict)
+    assert [(r["template"], r["constraints"], r["SR"]) for r in rows] == [(1, 2, 50.0),
+                                                                          (2, 2, 50.0)]
+    assert rows[1]["phrasing"] == grammar.RELATION_TEMPLATES[2]
+    with np.testing.assert_raises(ValueError):  # a sentence per constraint, or no breakdown
+        metrics.per_phrasing_metrics(tokens[:1], constraints[1:], strict[:1])

@@ -129,27 +129,38 @@ def render(constraints, tower_sentence: bool, relation_templates=None, tower_tem
 def sentence_templates(ids) -> list[tuple[str, int] | None]:
     """Which phrasing each sentence of an instruction (int token ids, numpy) is: ("tower", k)
     or ("relation", k), None for a sentence that is neither. Plain Python, for tests and
-    checks of the training data."""
-    ids = [int(i) for i in np.asarray(ids).ravel() if int(i) != language.PAD_ID]
+    checks of the training data (a batch at once: :func:`sentence_templates_batch`)."""
+    return sentence_templates_batch(np.asarray(ids).reshape(1, -1))[0]
+
+
+def sentence_templates_batch(tokens) -> list[list[tuple[str, int] | None]]:
+    """:func:`sentence_templates` of each instruction of tokens int (N, L) (numpy), its
+    sentences matched in one vmapped call per sentence kind."""
     stop = VOCABULARY.word_to_id["."]
-    sentences, current = [], []
-    for token in ids:
-        current.append(token)
-        if token == stop:
-            sentences.append(current)
-            current = []
-    if current:
-        sentences.append(current)
-    out = []
-    for sentence in sentences:
-        row = np.zeros(SENTENCE_TOKENS, np.int32)
-        row[:min(len(sentence), SENTENCE_TOKENS)] = sentence[:SENTENCE_TOKENS]
-        found = None
-        if len(sentence) <= SENTENCE_TOKENS:
-            for kind, compiled in (("tower", TOWERS), ("relation", RELATIONS)):
-                index, _ = language.match_template(row, compiled)
-                if int(index) >= 0:
-                    found = (kind, int(index))
-                    break
-        out.append(found)
-    return out
+    per_instruction, rows = [], []
+    for ids in np.asarray(tokens):
+        ids = [int(i) for i in ids if int(i) != language.PAD_ID]
+        ends = [i + 1 for i, token in enumerate(ids) if token == stop]
+        if ids and (not ends or ends[-1] != len(ids)):
+            ends.append(len(ids))
+        sentences = [ids[a:b] for a, b in zip([0] + ends[:-1], ends)]
+        per_instruction.append([len(rows) + j if len(s) <= SENTENCE_TOKENS else None
+                                for j, s in enumerate(sentences)])
+        for sentence in sentences:
+            row = np.zeros(SENTENCE_TOKENS, np.int32)
+            row[:min(len(sentence), SENTENCE_TOKENS)] = sentence[:SENTENCE_TOKENS]
+            rows.append(row)
+    if not rows:
+        return [[] for _ in per_instruction]
+    rows = np.stack(rows)
+    found = {kind: np.asarray(jax.vmap(lambda r, c=compiled: language.match_template(r, c)[0])(
+        rows)) for kind, compiled in (("tower", TOWERS), ("relation", RELATIONS))}
+
+    def which(j):
+        if j is not None:
+            for kind in ("tower", "relation"):
+                if found[kind][j] >= 0:
+                    return kind, int(found[kind][j])
+        return None
+
+    return [[which(j) for j in sentence_ids] for sentence_ids in per_instruction]

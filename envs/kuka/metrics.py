@@ -9,8 +9,9 @@ leaning on another at an angle (its centre higher than a flat block's would be) 
 Diffuser's looser check: xy distance under 0.2 m, X's centre higher than Y's by more than
 0.05 m, neither held.
 
-All functions are pure jnp (jit/vmap-able) and accept numpy arrays too; shapes are for one
-episode: pos float (4, 3) block centres, held bool (4,).
+All functions but :func:`per_phrasing_metrics` (plain Python over a batch of episodes) are pure
+jnp (jit/vmap-able) and accept numpy arrays too; shapes are for one episode: pos float (4, 3)
+block centres, held bool (4,).
 """
 from __future__ import annotations
 
@@ -71,3 +72,32 @@ def single_tower(pos, held) -> jnp.ndarray:
     on = on_matrix(pos, held)
     return ((on_floor(pos, held).sum() == 1) & (on.any(1).sum() == pos.shape[0] - 1)
             & (on.sum(0) <= 1).all())
+
+
+def per_phrasing_metrics(tokens, constraints, strict) -> list[dict]:
+    """Strict SR over the instructed constraints whose sentence is in each relation phrasing,
+    so that one phrasing the planner misreads shows instead of being averaged away.
+
+    Args (numpy, a batch of N episodes): tokens int (N, L) the instructions; constraints int
+    (N, 3, 2) (top, bottom) in instruction order, -1 rows absent; strict bool (N, 3) each
+    constraint holds. Returns [{"template": int (envs.kuka.grammar.RELATION_TEMPLATES), "phrasing":
+    str, "constraints": int, "SR": float}] by template index.
+    """
+    import numpy as np
+
+    from envs.kuka import grammar
+
+    counts: dict[int, list[int]] = {}
+    sentences = grammar.sentence_templates_batch(tokens)
+    for found, rows, ok in zip(sentences, np.asarray(constraints), np.asarray(strict)):
+        relations = [k for kind, k in filter(None, found) if kind == "relation"]
+        present = [j for j in range(len(rows)) if rows[j, 0] >= 0]
+        if len(relations) != len(present):
+            raise ValueError(f"an instruction has {len(relations)} relation sentences for "
+                             f"{len(present)} constraints")
+        for k, j in zip(relations, present):
+            counts.setdefault(int(k), [0, 0])
+            counts[int(k)][0] += int(ok[j])
+            counts[int(k)][1] += 1
+    return [{"template": k, "phrasing": grammar.RELATION_TEMPLATES[k], "constraints": n,
+             "SR": 100.0 * hits / n} for k, (hits, n) in sorted(counts.items())]
