@@ -16,6 +16,7 @@ block centres, held bool (4,).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from envs.kuka.scene import BLOCK_HALF_SIZE
 
@@ -83,11 +84,9 @@ def per_phrasing_metrics(tokens, constraints, strict) -> list[dict]:
     constraint holds. Returns [{"template": int (envs.kuka.grammar.RELATION_TEMPLATES), "phrasing":
     str, "constraints": int, "SR": float}] by template index.
     """
-    import numpy as np
-
     from envs.kuka import grammar
 
-    counts: dict[int, list[int]] = {}
+    counts: dict[int, tuple[int, int]] = {}
     sentences = grammar.sentence_templates_batch(tokens)
     for found, rows, ok in zip(sentences, np.asarray(constraints), np.asarray(strict)):
         relations = [k for kind, k in filter(None, found) if kind == "relation"]
@@ -96,8 +95,7 @@ def per_phrasing_metrics(tokens, constraints, strict) -> list[dict]:
             raise ValueError(f"an instruction has {len(relations)} relation sentences for "
                              f"{len(present)} constraints")
         for k, j in zip(relations, present):
-            counts.setdefault(int(k), [0, 0])
-            counts[int(k)][0] += int(ok[j])
-            counts[int(k)][1] += 1
+            hits, n = counts.get(int(k), (0, 0))
+            counts[int(k)] = (hits + int(ok[j]), n + 1)
     return [{"template": k, "phrasing": grammar.RELATION_TEMPLATES[k], "constraints": n,
              "SR": 100.0 * hits / n} for k, (hits, n) in sorted(counts.items())]
