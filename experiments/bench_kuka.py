@@ -149,7 +149,7 @@ def main(argv=None) -> int:
 
     from envs.kuka import env
     from envs.kuka.config import COLUMNS
-    from experiments.harness import format_table
+    from experiments.tables import format_table
     from experiments.kuka_eval import generate_episodes
 
     episodes = args.episodes or max(args.batch_sizes + [args.placement_batch])

@@ -23,7 +23,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from experiments import bench_train_split as split_mod, bench_train_worlds as bw, cli, harness
+from experiments import (bench_train_split as split_mod, bench_train_worlds as bw, cli, harness,
+                         tables)
 from experiments.recipes import MODEL_SIZES
 
 
@@ -170,7 +171,7 @@ def _print_table(world, evaluations) -> None:
                     for n in evaluations[0]["SR_columns"]]
     else:
         columns += [("SR_ordered", "{:>7.2f}", "SR_ord"), ("path_f1", "{:>6.1f}", "F1")]
-    print(harness.format_table(rows, columns))
+    print(tables.format_table(rows, columns))
 
 
 def main(argv=None) -> dict:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import sys
 import time
 
-from experiments import bench_train_worlds as bw, harness
+from experiments import bench_train_worlds as bw, harness, tables
 
 SYNC_EVERY = 4
 """The sustained run logs (and so waits for its steps) every this many steps: its time marks."""
@@ -182,7 +182,7 @@ def format_split(split: dict) -> str:
         f"time split of a training step ({split['world']}, {split['model_size']} model, batch "
         f"{split['batch_size']}; median of {split['repeats']} calls after warm-up; "
         f"{split['machine']}):",
-        harness.format_table(split["parts"], columns),
+        tables.format_table(split["parts"], columns),
         f"full step: {split['steps_per_second']:.2f} steps/s, "
         f"{split['examples_per_second']:.1f} examples/s",
         f"training loop over {sus['seconds']:.1f} s: {sus['steps']} steps, "

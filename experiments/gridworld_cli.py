@@ -14,7 +14,7 @@ import dataclasses
 import os
 from typing import Sequence
 
-from experiments import cli, gridworld_eval as ge, harness
+from experiments import cli, gridworld_eval as ge, harness, tables
 from experiments.gridworld_flags import build_parser, check_args
 from experiments.gridworld_spec import (LANGUAGE_CHOICES, METHOD_NAMES, MODE_REPLAN, SPECS,
                                         TRIGGER_WORDS, load_checked, method_name,
@@ -77,7 +77,7 @@ def _print_summary(spec, args, seeds, result) -> None:
         print(f"{excluded} of {args.episodes * len(seeds)} episodes equal a training episode of "
               "this checkpoint and are left out of the planner's rows")
     print(ge.format_table(result["rows"]))
-    if phrasings := harness.format_phrasings(result["rows"]):
+    if phrasings := tables.format_phrasings(result["rows"]):
         print(phrasings)
     if len(seeds) > 1:
         print(ge.format_intervals(result["rows"], seeds))

@@ -17,9 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.gridworld_spec import METHOD_NAMES
-from experiments.harness import (ROLLOUT_STREAM, concat_trees, format_intervals as _intervals,
-                                 format_table as _table, per_seed_values, planner_keys,
+from experiments.harness import (ROLLOUT_STREAM, concat_trees, per_seed_values, planner_keys,
                                  rollout_fn, seeded_episodes)
+from experiments.tables import format_intervals as _intervals, format_table as _table
 from experiments.intervals import rate_interval
 
 __all__ = ["ROLLOUT_STREAM", "concat_trees", "eval_episodes", "evaluate_mode", "metrics_row",

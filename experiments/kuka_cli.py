@@ -19,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
-from experiments import cli, harness, kuka_eval as ke, kuka_spec as ks
+from experiments import cli, harness, kuka_eval as ke, kuka_spec as ks, tables
 from experiments.kuka_flags import build_parser, check_args
 
 
@@ -117,10 +117,10 @@ def _print_summary(kind, args, seeds, checkpoint, all_rows) -> None:
           + f"; success on the physical poses after {args.settle:g} s at rest (SR strict, "
             "contract 4; SR_Diff Diffuser's check; SPL over placements)")
     print(ke.format_table(all_rows))
-    if phrasings := harness.format_phrasings(all_rows, "constraints"):
+    if phrasings := tables.format_phrasings(all_rows, "constraints"):
         print(phrasings)
     if len(seeds) > 1:
-        print(harness.format_intervals(all_rows[1:], seeds, 46))
+        print(tables.format_intervals(all_rows[1:], seeds, 46))
     print("paper (single / multi): " + "; ".join(
         f"{name} {s:.2f} / " + (f"{m:.2f}" if m is not None else "-")
         for name, (s, m) in ks.PAPER[kind].items()))

@@ -14,8 +14,8 @@ import jax
 import numpy as np
 
 from envs.kuka.env import SETTLE_SECONDS
-from experiments.harness import (format_table as _table, per_seed_values, planner_keys,
-                                 rollout_fn, seeded_episodes)
+from experiments.harness import per_seed_values, planner_keys, rollout_fn, seeded_episodes
+from experiments.tables import format_table as _table
 from experiments.intervals import clustered_interval
 
 

@@ -53,6 +53,34 @@ def pytest_xdist_make_scheduler(config, log):
     return MjxGroupScheduling(config, log)
 
 
+MAX_MAPPINGS = 32768
+"""Memory mappings of a test process above which its compiled programs are dropped (half the
+kernel's default vm.max_map_count, 65530)."""
+
+
+def memory_mappings() -> int:
+    """The memory mappings of this process (0 where /proc is not there)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return 0
+
+
+@pytest.fixture(scope="module", autouse=True)
+def release_compiled_programs():
+    """Drops JAX's in-memory compiled programs after a test module once the process holds more
+    than MAX_MAPPINGS memory mappings. Every loaded XLA CPU executable holds ~10 mappings (more
+    for large ones) until its cache entry goes: a worker that ran all the grid-world modules
+    reached ~63000 of the kernel's default limit of 65530 (vm.max_map_count), and past it LLVM
+    segfaulted while compiling the next program. A later module that needs a dropped program
+    reads it back from the persistent cache. (Dropping after every module kept the peak at
+    20000 but made the suite 32% slower: the MJX programs were re-read module after module.)"""
+    yield
+    if memory_mappings() > MAX_MAPPINGS:
+        jax.clear_caches()
+
+
 GRID_BATCH = 64
 """Episodes per generated test batch (one compilation per setting serves every seed)."""
 

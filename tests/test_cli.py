@@ -73,14 +73,14 @@ def test_harness_intervals_tables_and_keys():
     import jax
     import numpy as np
 
-    from experiments import harness, intervals
+    from experiments import harness, intervals, tables
 
     assert intervals.wilson_interval(0, 0) == [0.0, 100.0]
     lo, hi = intervals.wilson_interval(3000, 3000)
     assert hi == pytest.approx(100.0) and lo == pytest.approx(99.872, abs=1e-3)  # [99.87, 100]
     assert intervals.rate_interval(31.3, 3000) == intervals.wilson_interval(939, 3000)
-    table = harness.format_table([{"method": "a", "SR": 50.0}, {"method": "bb", "SR": None}],
-                                 (("method", "{:<4}", "m"), ("SR", "{:>6.1f}", "SR")))
+    table = tables.format_table([{"method": "a", "SR": 50.0}, {"method": "bb", "SR": None}],
+                                (("method", "{:<4}", "m"), ("SR", "{:>6.1f}", "SR")))
     assert table.splitlines() == ["m        SR", "-----------", "a      50.0", "bb        -"]
     root = jax.random.PRNGKey(9)
     np.testing.assert_array_equal(harness.episode_keys(9, 2, 4),
