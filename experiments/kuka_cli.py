@@ -72,13 +72,16 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
     pooled over the seeds (mode None: the expert), then of every --baselines policy (mode
     its method name)."""
     rows, finals = {}, {}
-    # One jitted rollout for every mode, column and seed: a fresh jax.jit per call would trace
-    # and lower the MJX program again each time (~15-20 s each).
-    run = harness.rollout_fn(task) if denoiser is not None else None
+    if denoiser is not None:
+        from diffplan.planner import PlannerConfig
+
+        # Every mode's MJX program compiled at once, then used for all columns and seeds.
+        runs = harness.compiled_planners(task, denoiser, {m: PlannerConfig(
+            mode=m, num_steps=args.num_steps) for m in modes}, episodes[specs[0], seeds[0]],
+            args.batch_size)
     for mode in modes:
         if denoiser is not None:
-            from diffplan.planner import Planner, PlannerConfig
-            planner = Planner(denoiser, PlannerConfig(mode=mode, num_steps=args.num_steps))
+            planner, run = runs[mode]
             act = functools.partial(ke.run_planner, task, planner, batch=args.batch_size,
                                     bar=bar, run=run, settle=args.settle)
         elif args.policy == "expert":
