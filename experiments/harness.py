@@ -132,18 +132,29 @@ def rollout_fn(task, num_slots: int | None = None):
 
 
 
+def available_memory_gb() -> float:
+    """GiB of memory available for new work now (/proc/meminfo's MemAvailable; else the free
+    physical pages)."""
+    try:
+        with open("/proc/meminfo") as f:
+            kib = next(int(line.split()[1]) for line in f if line.startswith("MemAvailable:"))
+        return kib / 2 ** 20
+    except (OSError, StopIteration, ValueError):
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2 ** 30
+
+
 def compile_together(fn, arg_sets, min_memory_gb: float = 16.0):
     """[fn's compiled program for each args of arg_sets]: traced and lowered one after another
     (Python holds the lock), then compiled by XLA in threads, so on a multi-core CPU the
     programs compile at once (the Kuka CLI's two planning modes on 2 cores: 117 s one after
     another, 75 s at once; its default command 7:32 -> 6:30 from an empty cache, peak memory
-    5.9 -> 11.8 GB). One at a time on a single core or below min_memory_gb of physical memory. Each
-    result is called like fn with arguments of the same shapes."""
+    5.9 -> 11.8 GB). One at a time on a single core or with less than min_memory_gb of memory
+    available. Each result is called like fn with arguments of the same shapes."""
     from concurrent.futures import ThreadPoolExecutor
 
     lowered = [fn.lower(*args) for args in arg_sets]
-    memory_gb = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2 ** 30
-    workers = min(len(lowered), os.cpu_count() or 1) if memory_gb >= min_memory_gb else 1
+    enough = available_memory_gb() >= min_memory_gb
+    workers = min(len(lowered), os.cpu_count() or 1) if enough else 1
     if workers < 2:
         return [low.compile() for low in lowered]
     with ThreadPoolExecutor(workers) as pool:
