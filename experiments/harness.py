@@ -133,8 +133,7 @@ def rollout_fn(task, num_slots: int | None = None):
 
 
 def available_memory_gb() -> float:
-    """GiB of memory available for new work now (/proc/meminfo's MemAvailable; else the free
-    physical pages)."""
+    """GiB of memory available now (/proc/meminfo's MemAvailable, else the free pages)."""
     try:
         with open("/proc/meminfo") as f:
             kib = next(int(line.split()[1]) for line in f if line.startswith("MemAvailable:"))
@@ -173,6 +172,7 @@ def compiled_planners(task, denoiser, configs: dict, episodes, batch: int) -> di
     args = [(p, planner_keys(0, np.arange(batch)), chunk, 0) for p in planners.values()]
     runs = compile_together(rollout_fn(task), args)
     return {name: (p, r) for (name, p), r in zip(planners.items(), runs)}
+
 
 # ------------------------------------------------------------------ rows
 
