@@ -19,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
-from experiments import cli, harness, kuka_eval as ke, kuka_spec as ks, tables
+from experiments import cli, compiling, harness, kuka_eval as ke, kuka_spec as ks, tables
 from experiments.kuka_flags import build_parser, check_args
 
 
@@ -76,7 +76,7 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
         from diffplan.planner import PlannerConfig
 
         # Every mode's MJX program compiled at once, then used for all columns and seeds.
-        runs = harness.compiled_planners(task, denoiser, {m: PlannerConfig(
+        runs = compiling.compiled_planners(task, denoiser, {m: PlannerConfig(
             mode=m, num_steps=args.num_steps) for m in modes}, episodes[specs[0], seeds[0]],
             args.batch_size)
     for mode in modes:

@@ -91,21 +91,21 @@ def test_harness_intervals_tables_and_keys():
 
 
 def test_compile_together_gives_the_jitted_programs():
-    """harness.compile_together: one compiled program per argument set (compiled in threads),
-    each computing what the jitted function computes on arguments of its shapes."""
+    """compiling.compile_together: one compiled program per argument set (compiled in
+    threads), each computing what the jitted function computes on arguments of its shapes."""
     import jax
     import numpy as np
 
-    from experiments import harness
+    from experiments import compiling
 
     fn = jax.jit(lambda x, k: x * k + 1)
-    small, large = harness.compile_together(fn, [(np.ones(3, np.float32), 2.0),
+    small, large = compiling.compile_together(fn, [(np.ones(3, np.float32), 2.0),
                                                  (np.ones((2, 4), np.float32), 2.0)])
     x = np.arange(8, dtype=np.float32).reshape(2, 4)
     np.testing.assert_array_equal(large(x, 3.0), fn(x, 3.0))
     np.testing.assert_array_equal(small(x[0, :3], 0.5), fn(x[0, :3], 0.5))
     with pytest.raises(TypeError):
         small(x, 2.0)  # a compiled program refuses other shapes
-    assert harness.compile_together(fn, []) == []
-    (one,) = harness.compile_together(fn, [(x, 1.0)], min_memory_gb=1e9)  # one at a time
+    assert compiling.compile_together(fn, []) == []
+    (one,) = compiling.compile_together(fn, [(x, 1.0)], min_memory_gb=1e9)  # one at a time
     np.testing.assert_array_equal(one(x, 4.0), fn(x, 4.0))
