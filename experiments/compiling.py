@@ -36,10 +36,11 @@ def compile_together(fn, arg_sets, min_memory_gb: float = 16.0):
         return list(pool.map(lambda low: low.compile(), lowered))
 
 
-def compiled_planners(task, denoiser, configs: dict, episodes, batch: int) -> dict:
+def compiled_planners(task, denoiser, configs: dict, episodes, batch: int, bar=None) -> dict:
     """{name: (Planner, its compiled rollout)} for each PlannerConfig of configs: the
     rollout_fn(task) programs for batches of ``batch`` episodes shaped like ``episodes`` (a
-    leading axis), compiled at once (compile_together); each is called as rollout_fn's."""
+    leading axis), compiled at once (compile_together); each is called as rollout_fn's.
+    bar: a tqdm bar that says "compiling" meanwhile (a minute or more for MJX programs)."""
     from diffplan.planner import Planner
     from experiments.harness import planner_keys, rollout_fn
 
@@ -47,5 +48,9 @@ def compiled_planners(task, denoiser, configs: dict, episodes, batch: int) -> di
     idx = np.minimum(np.arange(batch), jax.tree.leaves(episodes)[0].shape[0] - 1)
     chunk = jax.tree.map(lambda x: x[idx], episodes)
     args = [(p, planner_keys(0, np.arange(batch)), chunk, 0) for p in planners.values()]
+    if bar is not None:
+        bar.set_postfix_str(f"compiling {len(args)} planning program(s)")
     runs = compile_together(rollout_fn(task), args)
+    if bar is not None:
+        bar.set_postfix_str("")
     return {name: (p, r) for (name, p), r in zip(planners.items(), runs)}

@@ -78,7 +78,7 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
         # Every mode's MJX program compiled at once, then used for all columns and seeds.
         runs = compiling.compiled_planners(task, denoiser, {m: PlannerConfig(
             mode=m, num_steps=args.num_steps) for m in modes}, episodes[specs[0], seeds[0]],
-            args.batch_size)
+            args.batch_size, bar)
     for mode in modes:
         if denoiser is not None:
             planner, run = runs[mode]
