@@ -47,7 +47,8 @@ def compiled_planners(task, denoiser, configs: dict, episodes, batch: int, bar=N
     planners = {name: Planner(denoiser, config) for name, config in configs.items()}
     idx = np.minimum(np.arange(batch), jax.tree.leaves(episodes)[0].shape[0] - 1)
     chunk = jax.tree.map(lambda x: x[idx], episodes)
-    args = [(p, planner_keys(0, np.arange(batch)), chunk, 0) for p in planners.values()]
+    keys = planner_keys(0, np.arange(batch))
+    args = [(p, keys, chunk, 0) for p in planners.values()]
     if bar is not None:
         bar.set_postfix_str(f"compiling {len(args)} planning program(s)")
     runs = compile_together(rollout_fn(task), args)

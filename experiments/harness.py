@@ -131,7 +131,6 @@ def rollout_fn(task, num_slots: int | None = None):
         task, planner, keys, episodes, num_slots, on_move=RELAY, token=token))
 
 
-
 # ------------------------------------------------------------------ rows
 
 def per_seed_values(rows_by_seed: dict, fields) -> dict:
