@@ -77,7 +77,10 @@ def build_parser():
                         "(TrainConfig), model (DenoiserConfig) or training data (the world's "
                         "Recipe); repeatable, VALUE as JSON, e.g. --set steps=3000 --set "
                         "num_train_timesteps=10 --set 'cross_attn_levels=[1,2]' --set "
-                        "'mixture=[[\"p_mo2g\",48],[\"mo1g\",10],[\"1o1g\",6]]'. The "
+                        "'mixture=[[\"p_mo2g\",48],[\"mo1g\",10],[\"1o1g\",6]]' (grid) or "
+                        "'specs=[[\"rearrangement\",true,\"canonical\"],...]' (Kuka: task "
+                        "specs as [kind, multi, language], a spec listed twice has twice the "
+                        "share). The "
                         "checkpoint records every setting, so a --train-dir of other settings "
                         "is refused")
     split_mod.add_flags(p)

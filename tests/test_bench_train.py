@@ -187,3 +187,24 @@ def test_batch_size_follows_the_recipe_mixture():
                               'mixture=[["p_mo2g", 18], ["mo1g", 9], ["1o1g", 5]]'])
     world, *_ = bench_train.check_args(parser, args)
     assert world.name == "gridworld"
+
+
+def test_kuka_specs_can_be_set_as_lists():
+    """--set specs=[[kind, multi, language], ...] gives the Kuka recipe those task specs (a
+    spec listed twice has twice the share); a malformed spec is refused, naming it."""
+    from envs.kuka.config import TaskSpec
+    from envs.kuka.training import Recipe
+    from experiments import bench_train_worlds as bw
+
+    _, _, recipe = bw.training(bw.WORLDS["kuka"], "default", 1, [
+        'specs=[["rearrangement", true, "canonical"], ["rearrangement", true, "canonical"], '
+        '["stacking", false, "paraphrased"]]'])
+    assert recipe.specs == (TaskSpec("rearrangement", True),) * 2 + (
+        TaskSpec("stacking", False, "paraphrased"),)
+    assert recipe.batch_multiple == 3
+    assert recipe.metadata()["specs"][0] == ["rearrangement", True, "canonical"]
+    for bad in ([["stacking", "yes", "canonical"]], [["stacking", False]], []):
+        with pytest.raises(ValueError, match="spec"):
+            Recipe(specs=bad)
+    with pytest.raises(ValueError, match="unseen"):
+        Recipe(specs=[["stacking", False, "unseen"]])

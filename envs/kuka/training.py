@@ -131,12 +131,26 @@ def spec_examples(example_fn, key, batch_size: int, specs, perturb_prob: float):
     return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
 
 
+def as_task_spec(spec) -> TaskSpec:
+    """A TaskSpec, or its fields (kind, multi, language) as a sequence (JSON's lists), as one.
+    Raises ValueError naming anything else."""
+    if isinstance(spec, TaskSpec):
+        return spec
+    if (isinstance(spec, (tuple, list)) and len(spec) == 3 and isinstance(spec[0], str)
+            and isinstance(spec[1], bool) and isinstance(spec[2], str)):
+        return TaskSpec(*spec)
+    raise ValueError(f"a task spec is a TaskSpec or [kind, multi, language] such as "
+                     f"[\"rearrangement\", true, \"paraphrased\"], got {spec!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class Recipe:
     """The Kuka world's training-data recipe (what the Kuka CLIs' --train uses).
 
     specs: the task specs, each with the same share of every batch (the batch size must be a
-    multiple of their number). perturb_prob: the share of examples whose moved blocks are
+    multiple of their number); a spec may also be given as its fields ``(kind, multi,
+    language)``, as checkpoints record it (what ``bench_train --set specs=[[...], ...]``
+    passes); list a spec twice to give it twice the share. perturb_prob: the share of examples whose moved blocks are
     perturbed. goal_loss_weight: the weight of the goal and pick channels in the loss relative
     to the path channel's.
     """
@@ -150,6 +164,9 @@ class Recipe:
             raise ValueError(f"perturb_prob must be in [0, 1], got {self.perturb_prob}")
         if not self.goal_loss_weight > 0:
             raise ValueError(f"goal_loss_weight must be > 0, got {self.goal_loss_weight}")
+        object.__setattr__(self, "specs", tuple(map(as_task_spec, self.specs)))
+        if not self.specs:
+            raise ValueError("specs must name at least one task spec")
         for spec in self.specs:
             check_training_language(spec.language)
 
