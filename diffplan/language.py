@@ -234,6 +234,25 @@ def draw_template(key, pool, shape=()):
     return jnp.asarray(pool)[jax.random.randint(key, shape, 0, len(pool))]
 
 
+def drop_words(key, tokens, rate: float, keep_ids):
+    """Word dropout for training instructions: each word of tokens int (..., L) that is not
+    padding and not among keep_ids (int (K,), e.g. the slot fillers: object names, compass
+    directions) becomes padding with probability rate, independently. Positions do not move
+    (the encoders mask padding, so a dropped word is a hole, not a shift). rate 0 returns
+    tokens unchanged and consumes no randomness. jit-able."""
+    import jax
+    import jax.numpy as jnp
+
+    if not 0 <= rate < 1:
+        raise ValueError(f"word dropout rate must be in [0, 1), got {rate}")
+    tokens = jnp.asarray(tokens)
+    if rate == 0:
+        return tokens
+    droppable = (tokens != PAD_ID) & ~jnp.isin(tokens, jnp.asarray(keep_ids, tokens.dtype))
+    drop = jax.random.bernoulli(key, rate, tokens.shape) & droppable
+    return jnp.where(drop, jnp.asarray(PAD_ID, tokens.dtype), tokens)
+
+
 def match_template(tokens, compiled):
     """(index, slot tokens): which compiled template (int (N, L), slot markers negative; a
     numpy constant) the instruction tokens (int (L,)) are, and the token in each slot. index

@@ -165,6 +165,62 @@ def test_no_held_out_phrasing_in_a_grid_training_batch():
         make_mixture_batch_fn(language="unseen")
 
 
+def _held_out_within(template_ids, keep_ids):
+    """The held-out phrasings a training template could become by dropping words that are not
+    slot fillers: with padding holes kept in place, only a held-out phrasing equal to a prefix
+    of the template whose remainder is all droppable words."""
+    found = []
+    for k in grid_grammar.UNSEEN_TEMPLATES:
+        for setting in ("mo1g", "p_mo2g"):
+            held = grid_grammar.compile_templates(setting)[k]
+            n = int((held != 0).sum())
+            rest = template_ids[n:]
+            droppable = ~np.isin(rest, keep_ids) & (rest > 0)
+            if np.array_equal(template_ids[:n], held[:n]) and np.all(droppable | (rest == 0)):
+                found.append((setting, k))
+    return found
+
+
+def test_word_dropout_drops_other_words_only_and_keeps_the_episodes():
+    """Recipe(word_dropout=...): the same worlds, plans and loss weights as without it; the
+    tokens differ only where a word other than an object name or direction became padding,
+    at about the rate asked; no dropped training phrasing can become a held-out one."""
+    from envs.gridworld.training import SLOT_WORD_IDS, Recipe
+
+    plain = jax.jit(Recipe().batch_fn(), static_argnums=1)(jax.random.PRNGKey(3), 64)
+    dropped = jax.jit(Recipe(word_dropout=0.3).batch_fn(), static_argnums=1)(
+        jax.random.PRNGKey(3), 64)
+    for a, b in ((plain.x0, dropped.x0), (plain.loss_mask, dropped.loss_mask)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    before, after = np.asarray(plain.tokens), np.asarray(dropped.tokens)
+    changed = before != after
+    assert np.all(after[changed] == 0)
+    assert not np.any(changed & np.isin(before, SLOT_WORD_IDS))
+    droppable = (before != 0) & ~np.isin(before, SLOT_WORD_IDS)
+    assert 0.2 < changed.sum() / droppable.sum() < 0.4
+    assert Recipe(word_dropout=0.3).metadata()["word_dropout"] == 0.3
+    assert "word_dropout" not in Recipe().metadata()  # older checkpoints still match
+    for setting in ("mo1g", "p_mo2g"):
+        for ids in grid_grammar.compile_templates(setting)[:8]:
+            assert not _held_out_within(ids, SLOT_WORD_IDS)
+    with pytest.raises(ValueError, match="word_dropout"):
+        Recipe(word_dropout=1.0).batch_fn()
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.0, 0.9))
+def test_drop_words_invariants(seed, rate):
+    """drop_words only turns droppable words into padding; rate 0 is the identity."""
+    tokens = np.asarray(jax.random.randint(jax.random.PRNGKey(seed), (4, 12), 0, 9))
+    keep = np.array([2, 5], np.int32)
+    out = np.asarray(language.drop_words(jax.random.PRNGKey(seed + 1), tokens, rate, keep))
+    changed = out != tokens
+    assert np.all(out[changed] == 0) and not np.any(changed & np.isin(tokens, keep))
+    assert not np.any(changed & (tokens == 0))
+    np.testing.assert_array_equal(
+        np.asarray(language.drop_words(jax.random.PRNGKey(0), tokens, 0.0, keep)), tokens)
+
+
 def test_no_held_out_phrasing_in_a_kuka_training_batch():
     from envs.kuka.config import TaskSpec
     from envs.kuka.training import SPECS, Recipe

@@ -15,9 +15,10 @@ import dataclasses
 import functools
 
 import jax
+import numpy as np
 import jax.numpy as jnp
 
-from diffplan.language import check_training_language
+from diffplan.language import check_training_language, drop_words
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
@@ -210,17 +211,29 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     return batch_fn
 
 
+SLOT_WORD_IDS = np.concatenate([
+    grammar.class_to_token(np.arange(1, len(grammar.OBJECT_NAMES) + 1)),
+    grammar.DIRECTION_TOKEN_IDS]).astype(np.int32)
+"""Token ids of the words that fill an instruction's slots (object names, compass directions):
+what word dropout never drops."""
+
+
 def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
-                          language: str = "canonical", **example_kwargs):
+                          language: str = "canonical", word_dropout: float = 0.0,
+                          **example_kwargs):
     """batch_fn(key, batch_size) -> Batch with the settings' examples in fixed proportions:
     mixture ((setting, count), ...) gives count examples of each setting per sum(counts) (the
     batch size must be a multiple of sum(counts)); example j of setting s comes from
     training_episode_keys(fold_in(key, index of s), ...). language: the phrasing of the
-    instructions (GridConfig.language; never "unseen"). example_kwargs go to
-    :func:`make_batch_fn`."""
+    instructions (GridConfig.language; never "unseen"). word_dropout: the probability that a
+    word other than a slot filler (:data:`SLOT_WORD_IDS`) becomes padding
+    (diffplan.language.drop_words, with a key of its own, so the episodes do not change).
+    example_kwargs go to :func:`make_batch_fn`."""
     from diffplan.train import Batch
 
     check_training_language(language)
+    if not 0 <= word_dropout < 1:
+        raise ValueError(f"word_dropout must be in [0, 1), got {word_dropout}")
     total = sum(count for _, count in mixture)
     fns = [(make_batch_fn(make_config(setting, language=language), goal_channel,
                           **example_kwargs), count)
@@ -233,7 +246,12 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
         scale = batch_size // total
         parts = [fn(jax.random.fold_in(key, i), count * scale)
                  for i, (fn, count) in enumerate(fns)]
-        return Batch(*[jnp.concatenate(xs) for xs in zip(*parts)])
+        batch = Batch(*[jnp.concatenate(xs) for xs in zip(*parts)])
+        if not word_dropout:
+            return batch
+        tokens = drop_words(jax.random.fold_in(key, len(fns)), batch.tokens, word_dropout,
+                            SLOT_WORD_IDS)
+        return batch._replace(tokens=tokens)
 
     return batch_fn
 
@@ -247,6 +265,8 @@ class Recipe:
     target on the route's leg after the reference). goal_channel: False for the "- g"
     ablation. language: the phrasing of the examples' instructions ("mixed": canonical half of
     the time, else one of the training paraphrases; the held-out phrasings never).
+    word_dropout: the probability that a training instruction's word other than an object name
+    or direction is dropped (0: none; see :func:`make_mixture_batch_fn`).
     """
 
     mixture: tuple = TRAINING_MIXTURE
@@ -256,9 +276,11 @@ class Recipe:
     language: str = "mixed"
     path_near_agent_weight: float = 0.0
     later_leg_value: float = 1.0
+    word_dropout: float = 0.0
 
     def batch_fn(self):
         return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
+                                     word_dropout=self.word_dropout,
                                      detour_prob=self.detour_prob,
                                      goal_loss_weight=self.goal_loss_weight,
                                      path_near_agent_weight=self.path_near_agent_weight,
@@ -284,7 +306,8 @@ class Recipe:
                 **({"path_near_agent_weight": self.path_near_agent_weight}
                    if self.path_near_agent_weight else {}),
                 **({"later_leg_value": self.later_leg_value}
-                   if self.later_leg_value != 1.0 else {})}
+                   if self.later_leg_value != 1.0 else {}),
+                **({"word_dropout": self.word_dropout} if self.word_dropout else {})}
 
 
 # ------------------------------------------------------------------ the episodes of a run
