@@ -234,6 +234,13 @@ def draw_template(key, pool, shape=()):
     return jnp.asarray(pool)[jax.random.randint(key, shape, 0, len(pool))]
 
 
+def check_dropout_rate(rate: float, name: str = "word dropout rate") -> float:
+    """rate if it is a word dropout probability in [0, 1) (ValueError naming ``name`` else)."""
+    if not 0 <= rate < 1:
+        raise ValueError(f"{name} must be in [0, 1), got {rate}")
+    return rate
+
+
 def drop_words(key, tokens, rate: float, keep_ids):
     """Word dropout for training instructions: each word of tokens int (..., L) that is not
     padding and not among keep_ids (int (K,), e.g. the slot fillers: object names, compass
@@ -243,8 +250,7 @@ def drop_words(key, tokens, rate: float, keep_ids):
     import jax
     import jax.numpy as jnp
 
-    if not 0 <= rate < 1:
-        raise ValueError(f"word dropout rate must be in [0, 1), got {rate}")
+    check_dropout_rate(rate)
     tokens = jnp.asarray(tokens)
     if rate == 0:
         return tokens

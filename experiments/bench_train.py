@@ -80,8 +80,7 @@ def build_parser():
                         "'mixture=[[\"p_mo2g\",48],[\"mo1g\",10],[\"1o1g\",6]]' (grid) or "
                         "'specs=[[\"rearrangement\",true,\"canonical\"],...]' (Kuka: task "
                         "specs as [kind, multi, language], a spec listed twice has twice the "
-                        "share). The "
-                        "checkpoint records every setting, so a --train-dir of other settings "
+                        "share). The checkpoint records every setting, so a --train-dir of other settings "
                         "is refused")
     split_mod.add_flags(p)
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")

@@ -15,10 +15,10 @@ import dataclasses
 import functools
 
 import jax
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 
-from diffplan.language import check_training_language, drop_words
+from diffplan.language import check_dropout_rate, check_training_language, drop_words
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
@@ -232,8 +232,7 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
     from diffplan.train import Batch
 
     check_training_language(language)
-    if not 0 <= word_dropout < 1:
-        raise ValueError(f"word_dropout must be in [0, 1), got {word_dropout}")
+    check_dropout_rate(word_dropout, "word_dropout")
     total = sum(count for _, count in mixture)
     fns = [(make_batch_fn(make_config(setting, language=language), goal_channel,
                           **example_kwargs), count)
@@ -247,11 +246,8 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
         parts = [fn(jax.random.fold_in(key, i), count * scale)
                  for i, (fn, count) in enumerate(fns)]
         batch = Batch(*[jnp.concatenate(xs) for xs in zip(*parts)])
-        if not word_dropout:
-            return batch
-        tokens = drop_words(jax.random.fold_in(key, len(fns)), batch.tokens, word_dropout,
-                            SLOT_WORD_IDS)
-        return batch._replace(tokens=tokens)
+        return batch._replace(tokens=drop_words(jax.random.fold_in(key, len(fns)),
+                                                batch.tokens, word_dropout, SLOT_WORD_IDS))
 
     return batch_fn
 

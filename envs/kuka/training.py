@@ -150,8 +150,8 @@ class Recipe:
     specs: the task specs, each with the same share of every batch (the batch size must be a
     multiple of their number); a spec may also be given as its fields ``(kind, multi,
     language)``, as checkpoints record it (what ``bench_train --set specs=[[...], ...]``
-    passes); list a spec twice to give it twice the share. perturb_prob: the share of examples whose moved blocks are
-    perturbed. goal_loss_weight: the weight of the goal and pick channels in the loss relative
+    passes); list a spec twice to give it twice the share. perturb_prob: the share of
+    examples whose moved blocks are perturbed. goal_loss_weight: the weight of the goal and pick channels in the loss relative
     to the path channel's.
     """
 
