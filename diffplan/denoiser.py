@@ -60,6 +60,8 @@ class DenoiserConfig:
       text_dim, text_layers, text_heads: text encoder width, depth, heads.
       groups: GroupNorm groups (divides every width).
       head_dim: channels per attention head in the UNet.
+      sentence_end_id: -1 (the text encoder's positions are absolute), or the token id that
+        ends a sentence: positions then count within each sentence (diffplan.text_encoder).
       mid_block: UNet middle block (ResBlock, transformer, ResBlock) at the lowest level;
         off by default (it adds ~0.9M parameters and ~12% FLOPs to the default model).
     """
@@ -80,6 +82,7 @@ class DenoiserConfig:
     groups: int = 8
     head_dim: int = 32
     mid_block: bool = False
+    sentence_end_id: int = -1
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -110,6 +113,11 @@ class DenoiserConfig:
         if self.text_dim % self.text_heads:
             raise ValueError(f"text_dim={self.text_dim} must be divisible by "
                              f"text_heads={self.text_heads}")
+        if (not isinstance(self.sentence_end_id, (int, np.integer))
+                or isinstance(self.sentence_end_id, bool)
+                or not -1 <= self.sentence_end_id < self.vocab_size):
+            raise ValueError(f"sentence_end_id must be -1 or a token id in [0, vocab_size="
+                             f"{self.vocab_size}), got {self.sentence_end_id!r}")
         if not isinstance(self.mid_block, bool):
             raise ValueError(f"mid_block must be a bool, got {self.mid_block!r}")
         # UNet checks: widths, groups, levels, head_dim.
@@ -168,7 +176,8 @@ class Denoiser(nn.Module):
         self.text_encoder = TextEncoder(vocab_size=cfg.vocab_size, max_tokens=cfg.max_tokens,
                                         dim=cfg.text_dim, num_layers=cfg.text_layers,
                                         num_heads=cfg.text_heads, embed_dim=cfg.embed_dim,
-                                        embed=shared)
+                                        embed=shared,
+                                        sentence_end_id=int(cfg.sentence_end_id))
         self.unet = cfg.unet()
 
     def encode_grid(self, x_t: jax.Array) -> jax.Array:

@@ -10,6 +10,12 @@ Shapes:
 Padding positions never influence real positions (key padding mask in every self-attention,
 absolute learned positions starting at 0), so the features of an instruction do not depend on
 how much padding follows it.
+
+Positions: absolute (token i gets position i, the default), or per sentence when
+``sentence_end_id`` names the token that ends a sentence (e.g. "."): a token's position counts
+from the start of its sentence, and a learned embedding of the sentence's index is added. Then
+the embedding of a sentence's words does not depend on how long the sentences before it are,
+so a sentence reads the same wherever a multi-sentence instruction puts it.
 """
 from __future__ import annotations
 
@@ -21,7 +27,23 @@ import flax.linen as nn
 
 from diffplan.unet import MultiHeadAttention
 
-__all__ = ["TextEncoderLayer", "TextEncoder"]
+__all__ = ["TextEncoderLayer", "TextEncoder", "sentence_positions"]
+
+
+def sentence_positions(tokens: jax.Array, sentence_end_id: int) -> tuple[jax.Array, jax.Array]:
+    """(position in its sentence, index of its sentence) of every token; both int32 (B, L).
+
+    tokens: int (B, L). A sentence ends with (and includes) a token equal to sentence_end_id;
+    the next token starts sentence index + 1 at position 0. Padding gets positions too (they
+    are masked out of attention).
+    """
+    tokens = jnp.asarray(tokens)
+    ends = (tokens == sentence_end_id).astype(jnp.int32)
+    sentence = jnp.cumsum(ends, axis=1) - ends
+    index = jnp.broadcast_to(jnp.arange(tokens.shape[1], dtype=jnp.int32), tokens.shape)
+    after_end = jnp.pad(ends[:, :-1], ((0, 0), (1, 0))) > 0
+    start = jax.lax.cummax(jnp.where(after_end, index, 0), axis=1)
+    return index - start, sentence
 
 
 class TextEncoderLayer(nn.Module):
@@ -51,6 +73,9 @@ class TextEncoder(nn.Module):
       embed_dim: width of the owned token table (default: dim); ignored when ``embed`` is given.
       embed: an optional shared ``nn.Embed`` module (the denoiser's table); if its width differs
         from ``dim`` a Dense projection is added.
+      sentence_end_id: -1 (absolute positions), or the token id that ends a sentence: positions
+        count within each sentence, plus a learned sentence-index table ``sentence_embed``
+        (:func:`sentence_positions`).
 
     Call: tokens (B, L) int32 -> (features (B, L, dim) float32, mask (B, L) bool).
     """
@@ -62,6 +87,7 @@ class TextEncoder(nn.Module):
     num_heads: int = 4
     embed_dim: Optional[int] = None
     embed: Optional[nn.Module] = None
+    sentence_end_id: int = -1
 
     @nn.compact
     def __call__(self, tokens: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -83,7 +109,13 @@ class TextEncoder(nn.Module):
         if x.shape[-1] != self.dim:
             x = nn.Dense(self.dim, name="embed_proj")(x)
         pos = self.param("pos_embed", nn.initializers.normal(0.02), (self.max_tokens, self.dim))
-        x = x + pos[None, :length]
+        if self.sentence_end_id < 0:
+            x = x + pos[None, :length]
+        else:
+            position, sentence = sentence_positions(tokens, self.sentence_end_id)
+            sentences = self.param("sentence_embed", nn.initializers.normal(0.02),
+                                   (self.max_tokens, self.dim))
+            x = x + pos[position] + sentences[sentence]
         for i in range(self.num_layers):
             x = TextEncoderLayer(self.num_heads, name=f"layer{i}")(x, mask)
         x = nn.LayerNorm(name="ln_final")(x)

@@ -190,6 +190,8 @@ def test_config_dict_roundtrip_and_hash():
     (dict(head_dim=3), "head_dim"),
     (dict(widths=8), "widths"),
     (dict(num_res_blocks=0), "num_res_blocks"),
+    (dict(sentence_end_id=10 ** 6), "sentence_end_id"),
+    (dict(sentence_end_id=-2), "sentence_end_id"),
 ])
 def test_bad_config_raises(override, match):
     with pytest.raises(ValueError, match=match):

@@ -4,7 +4,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffplan.text_encoder import TextEncoder
+from hypothesis import given, settings, strategies as st
+
+from diffplan.text_encoder import TextEncoder, sentence_positions
 from diffplan.unet import FAST_COMPILE_OPTIONS, MultiHeadAttention, UNet, timestep_embedding
 
 TINY = dict(out_channels=2, widths=(8, 16), num_res_blocks=1, attn_levels=(1,),
@@ -158,3 +160,43 @@ def test_text_encoder_shapes_padding_and_limits():
     with pytest.raises(ValueError, match="num_heads"):
         jax.eval_shape(TextEncoder(vocab_size=20, max_tokens=10, dim=15, num_heads=2).init,
                        jax.random.PRNGKey(0), tok)
+
+
+def _sentence_positions_oracle(tokens, end_id):
+    """Plain-Python (position in sentence, sentence index) of every token."""
+    positions, sentences = np.zeros_like(tokens), np.zeros_like(tokens)
+    for b, row in enumerate(tokens):
+        position = sentence = 0
+        for i, token in enumerate(row):
+            positions[b, i], sentences[b, i] = position, sentence
+            position += 1
+            if token == end_id:
+                position, sentence = 0, sentence + 1
+    return positions, sentences
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.lists(st.integers(0, 4), min_size=1, max_size=9), min_size=1, max_size=3))
+def test_sentence_positions_match_a_plain_python_oracle(rows):
+    width = max(len(r) for r in rows)
+    tokens = np.array([r + [0] * (width - len(r)) for r in rows], np.int32)
+    position, sentence = sentence_positions(jnp.asarray(tokens), 3)
+    want_position, want_sentence = _sentence_positions_oracle(tokens, 3)
+    np.testing.assert_array_equal(position, want_position)
+    np.testing.assert_array_equal(sentence, want_sentence)
+
+
+def test_sentence_positions_make_a_sentence_independent_of_the_ones_before():
+    """With per-sentence positions (and no attention layers), the last sentence's features do
+    not change when the sentence before it gets longer; with absolute positions they do."""
+    end = 1
+    short = jnp.array([[5, 6, end, 7, 8, end, 0, 0]], jnp.int32)
+    long = jnp.array([[5, 9, 6, end, 7, 8, end, 0]], jnp.int32)
+    for end_id, same in ((end, True), (-1, False)):
+        enc = TextEncoder(vocab_size=12, max_tokens=8, dim=8, num_layers=0, num_heads=2,
+                          sentence_end_id=end_id)
+        v = random_variables(enc, short)
+        assert ("sentence_embed" in v["params"]) == (end_id >= 0)
+        a, _ = enc.apply(v, short)
+        b, _ = enc.apply(v, long)
+        assert np.allclose(a[0, 3:6], b[0, 4:7], atol=1e-5) == same
