@@ -141,10 +141,15 @@ class DenoiserConfig:
         return 2 ** (len(self.widths) - 1)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-friendly dict (tuples as lists) for checkpoint metadata."""
+        """JSON-friendly dict (tuples as lists) for checkpoint metadata. ``sentence_end_id``
+        is left out when it is -1 (absolute positions), so the metadata of a checkpoint from
+        before it existed still equals its config's (resuming, loading with an expected
+        config)."""
         d = dataclasses.asdict(self)
         for name in _TUPLE_FIELDS:
             d[name] = list(d[name])
+        if d["sentence_end_id"] == -1:
+            del d["sentence_end_id"]
         return d
 
     @classmethod

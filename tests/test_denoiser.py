@@ -176,6 +176,11 @@ def test_config_dict_roundtrip_and_hash():
     with pytest.raises(ValueError, match="unknown DenoiserConfig fields"):
         DenoiserConfig.from_dict({**d, "bogus": 1})
     assert hash(DenoiserConfig()) == hash(DenoiserConfig())
+    # absolute positions (the default) are not recorded: older checkpoints' metadata matches
+    assert "sentence_end_id" not in d
+    per_sentence = dataclasses.replace(TINY, sentence_end_id=3)
+    assert per_sentence.to_dict()["sentence_end_id"] == 3
+    assert DenoiserConfig.from_dict(json.loads(json.dumps(per_sentence.to_dict()))) == per_sentence
 
 
 @pytest.mark.parametrize("override, match", [
