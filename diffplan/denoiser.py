@@ -113,9 +113,8 @@ class DenoiserConfig:
         if self.text_dim % self.text_heads:
             raise ValueError(f"text_dim={self.text_dim} must be divisible by "
                              f"text_heads={self.text_heads}")
-        if (not isinstance(self.sentence_end_id, (int, np.integer))
-                or isinstance(self.sentence_end_id, bool)
-                or not -1 <= self.sentence_end_id < self.vocab_size):
+        positive("sentence_end_id", -1)
+        if self.sentence_end_id >= self.vocab_size:
             raise ValueError(f"sentence_end_id must be -1 or a token id in [0, vocab_size="
                              f"{self.vocab_size}), got {self.sentence_end_id!r}")
         if not isinstance(self.mid_block, bool):

@@ -20,10 +20,8 @@ MODEL_SIZES = {
 
 
 def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_channels: int,
-                    num_gen_channels: int, grid_repr: str = "embed", sentence_end_id: int = -1):
-    """The DenoiserConfig of a model size on a world's planning tensor and vocabulary
-    (sentence_end_id: the token that ends a sentence for per-sentence text positions, -1 for
-    absolute ones)."""
+                    num_gen_channels: int, grid_repr: str = "embed"):
+    """The DenoiserConfig of a model size on a world's planning tensor and vocabulary."""
     from diffplan.denoiser import DenoiserConfig
 
     if size not in MODEL_SIZES:
@@ -31,7 +29,7 @@ def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_cha
     return DenoiserConfig(vocab_size=vocab_size, max_tokens=max_tokens,
                           num_cond_channels=num_cond_channels,
                           num_gen_channels=num_gen_channels, grid_repr=grid_repr,
-                          sentence_end_id=sentence_end_id, **MODEL_SIZES[size])
+                          **MODEL_SIZES[size])
 
 
 def warmup(warmup_steps: int, steps: int) -> int:
