@@ -38,6 +38,8 @@ __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "ini
 
 GRID_REPRS = ("embed", "class_id")
 _TUPLE_FIELDS = ("widths", "attn_levels", "cross_attn_levels")
+_LATER_FIELDS = {"sentence_end_id": -1, "token_classes": 0}
+"""DenoiserConfig fields newer than some checkpoints, and the default that means "absent"."""
 PREDICTIONS = ("eps", "x0")
 """What a network predicts for the generated channels: the noise, or the clean plan x0."""
 
@@ -64,6 +66,11 @@ class DenoiserConfig:
         ends a sentence: positions then count within each sentence (diffplan.text_encoder).
       mid_block: UNet middle block (ResBlock, transformer, ResBlock) at the lowest level;
         off by default (it adds ~0.9M parameters and ~12% FLOPs to the default model).
+      token_classes: 0, or K > 0: a linear head ``token_head`` maps each instruction token's
+        text-encoder features to K logits (:meth:`Denoiser.token_logits`), trained by an
+        auxiliary loss where a batch labels tokens (``diffplan.losses.token_loss``), so the
+        features the UNet cross-attends to must carry what the labels say. Planning never
+        calls it.
     """
 
     vocab_size: int = 64
@@ -83,6 +90,7 @@ class DenoiserConfig:
     head_dim: int = 32
     mid_block: bool = False
     sentence_end_id: int = -1
+    token_classes: int = 0
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -117,6 +125,7 @@ class DenoiserConfig:
         if self.sentence_end_id >= self.vocab_size:
             raise ValueError(f"sentence_end_id must be -1 or a token id in [0, vocab_size="
                              f"{self.vocab_size}), got {self.sentence_end_id!r}")
+        positive("token_classes", 0)
         if not isinstance(self.mid_block, bool):
             raise ValueError(f"mid_block must be a bool, got {self.mid_block!r}")
         # UNet checks: widths, groups, levels, head_dim.
@@ -140,15 +149,16 @@ class DenoiserConfig:
         return 2 ** (len(self.widths) - 1)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-friendly dict (tuples as lists) for checkpoint metadata. ``sentence_end_id``
-        is left out when it is -1 (absolute positions), so the metadata of a checkpoint from
-        before it existed still equals its config's (resuming, loading with an expected
-        config)."""
+        """JSON-friendly dict (tuples as lists) for checkpoint metadata. Fields added after
+        checkpoints were shipped (:data:`_LATER_FIELDS`) are left out at their defaults, so the
+        metadata of a checkpoint from before them still equals its config's (resuming,
+        loading with an expected config)."""
         d = dataclasses.asdict(self)
         for name in _TUPLE_FIELDS:
             d[name] = list(d[name])
-        if d["sentence_end_id"] == -1:
-            del d["sentence_end_id"]
+        for name, default in _LATER_FIELDS.items():
+            if d[name] == default:
+                del d[name]
         return d
 
     @classmethod
@@ -164,7 +174,7 @@ class Denoiser(nn.Module):
       -> eps (B, H, W, G) float32.
     H and W must be multiples of ``config.min_size_multiple``; L <= config.max_tokens.
     Parameters: ``token_embed`` (only for grid_repr "embed": shared by cells and words),
-    ``text_encoder``, ``unet``.
+    ``text_encoder``, ``unet``, and ``token_head`` when ``config.token_classes`` > 0.
     """
 
     config: DenoiserConfig
@@ -183,6 +193,17 @@ class Denoiser(nn.Module):
                                         embed=shared,
                                         sentence_end_id=int(cfg.sentence_end_id))
         self.unet = cfg.unet()
+        if cfg.token_classes:
+            self.token_head = nn.Dense(cfg.token_classes)
+
+    def token_logits(self, tokens: jax.Array) -> jax.Array:
+        """tokens int32 (B, L) -> float32 (B, L, token_classes): the token head's logits on
+        the text encoder's features (the context the UNet cross-attends to)."""
+        if not self.config.token_classes:
+            raise ValueError("this denoiser has no token head (DenoiserConfig.token_classes "
+                             "is 0); a batch with token labels needs token_classes > 0")
+        context, _ = self.text_encoder(tokens)
+        return self.token_head(context)
 
     def encode_grid(self, x_t: jax.Array) -> jax.Array:
         """(B, H, W, C+G) planning tensor -> (B, H, W, F) UNet input features.
@@ -216,6 +237,8 @@ class Denoiser(nn.Module):
             raise ValueError(f"tokens must have shape (B={b}, L), got {tokens.shape}")
         x_t = x_t.astype(jnp.float32)
         context, mask = self.text_encoder(tokens)
+        if self.config.token_classes and self.is_initializing():
+            self.token_head(context)  # create its params with the rest
         feats = self.encode_grid(x_t)
         return self.unet(feats, t, context, mask)
 

@@ -12,12 +12,17 @@ generated channels (path, goal). One training step (the paper's objective, sec. 
 with ``ab = cosine_schedule(T).alphas_cumprod`` (target x0[..., C:] instead of eps for
 ``prediction="x0"``). ``loss_mask`` (B, H, W, G) lets the caller drop parts of the loss (e.g.
 the goal channel outside the seen area).
+
+Optionally a batch labels instruction tokens (``Batch.token_labels``, ``token_weights``), and the
+step adds :func:`token_loss`, a weighted cross-entropy of the denoiser's token head
+(``DenoiserConfig.token_classes``) on those labels: an auxiliary signal that the text features
+must carry what the labels say (in the Kuka world: which named block goes on top).
 """
 from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +33,8 @@ from diffplan.schedule import cosine_schedule
 from diffplan.train_state import (TrainConfig, TrainState, hashable, lr_schedule,
                                   make_optimizer)
 
-__all__ = ["Batch", "check_batch", "diffusion_loss", "make_train_step", "make_val_loss"]
+__all__ = ["Batch", "check_batch", "diffusion_loss", "token_loss", "make_train_step",
+           "make_val_loss"]
 
 
 class Batch(NamedTuple):
@@ -38,17 +44,24 @@ class Batch(NamedTuple):
       x0: float32 (B, H, W, C + G), the clean planning tensor (conditions, then generated).
       tokens: int32 (B, L), instruction token ids, 0 = padding.
       loss_mask: float32 (B, H, W, G), weight of each generated entry in the loss.
+      token_labels: None, or int32 (B, L): a class in [0, K) for each token (any value where
+        its weight is 0), K the denoiser's ``token_classes``.
+      token_weights: None (exactly when token_labels is), or float32 (B, L): the weight of each
+        token's cross-entropy in :func:`token_loss` (0 = unlabelled).
     """
 
     x0: jax.Array
     tokens: jax.Array
     loss_mask: jax.Array
+    token_labels: Optional[jax.Array] = None
+    token_weights: Optional[jax.Array] = None
 
 
 def check_batch(batch: Batch, num_gen_channels: int) -> None:
     """Raises ValueError unless the batch's shapes fit (x0 (B, H, W, C+G) with 0 < G <= C+G,
-    tokens (B, L), loss_mask (B, H, W, G)); arrays or ShapeDtypeStructs."""
-    x0, tokens, mask = batch
+    tokens (B, L), loss_mask (B, H, W, G), token labels and weights both absent or both
+    (B, L)); arrays or ShapeDtypeStructs."""
+    x0, tokens, mask = batch[:3]
     if len(x0.shape) != 4:
         raise ValueError(f"Batch.x0 must be (B, H, W, C+G), got shape {tuple(x0.shape)}")
     B, H, W, CG = x0.shape
@@ -60,6 +73,14 @@ def check_batch(batch: Batch, num_gen_channels: int) -> None:
     if tuple(mask.shape) != (B, H, W, num_gen_channels):
         raise ValueError(f"Batch.loss_mask must be {(B, H, W, num_gen_channels)}, got "
                          f"{tuple(mask.shape)}")
+    labels, weights = (tuple(batch[3:]) + (None, None))[:2]
+    if (labels is None) != (weights is None):
+        raise ValueError("Batch.token_labels and Batch.token_weights come together: give both "
+                         "or neither")
+    for name, value in (("token_labels", labels), ("token_weights", weights)):
+        if value is not None and tuple(value.shape) != tuple(tokens.shape):
+            raise ValueError(f"Batch.{name} must have the tokens' shape {tuple(tokens.shape)}, "
+                             f"got {tuple(value.shape)}")
 
 
 def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
@@ -79,7 +100,7 @@ def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
       (loss scalar, aux dict with ``t`` (B,) and ``mask_sum``).
     """
     check_batch(batch, num_gen_channels)
-    x0, tokens, loss_mask = batch
+    x0, tokens, loss_mask = batch[:3]
     x0 = x0.astype(jnp.float32)
     G = num_gen_channels
     C = x0.shape[-1] - G
@@ -101,6 +122,21 @@ def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
     sq = jnp.sum(mask * jnp.square(pred.astype(jnp.float32) - target))
     loss = jnp.where(msum > 0, sq / jnp.maximum(msum, 1e-12), 0.0)
     return loss, {"t": t, "mask_sum": msum}
+
+
+def token_loss(params, logits_fn: Callable, batch: Batch):
+    """The weighted cross-entropy of the token head on a batch's token labels:
+    sum(w * CE(logits, label)) / max(#(w > 0), 1), so a constant weight lam on the labelled
+    tokens gives lam times their mean cross-entropy.
+
+    logits_fn: ``logits_fn({"params": params}, tokens (B, L)) -> (B, L, K)``; batch: a
+    ``Batch`` with token_labels and token_weights. Returns a scalar.
+    """
+    logits = logits_fn({"params": params}, batch.tokens.astype(jnp.int32)).astype(jnp.float32)
+    weights = batch.token_weights.astype(jnp.float32)
+    labels = jnp.where(weights > 0, batch.token_labels, 0).astype(jnp.int32)
+    ce = optax.softmax_cross_entropy_with_integer_labels(logits, labels)
+    return jnp.sum(weights * ce) / jnp.maximum(jnp.sum(weights > 0), 1)
 
 
 # ------------------------------------------------------------------------------- the step
@@ -126,9 +162,13 @@ def _make_core_step(model, config: TrainConfig, alphas_cumprod):
 
     def core(state: TrainState, batch: Batch, key: jax.Array):
         def loss_fn(p):
-            return diffusion_loss(p, model.apply, batch, key, ab, G, config.prediction)
+            loss, _ = diffusion_loss(p, model.apply, batch, key, ab, G, config.prediction)
+            if batch.token_labels is None:
+                return loss, {}
+            tl = token_loss(p, functools.partial(model.apply, method="token_logits"), batch)
+            return loss + tl, {"diffusion_loss": loss, "token_loss": tl}
 
-        (loss, _), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         grad_norm = optax.tree.norm(grads)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
@@ -138,7 +178,7 @@ def _make_core_step(model, config: TrainConfig, alphas_cumprod):
                                      state.ema_params, params)
         new_state = TrainState(params=params, ema_params=ema, opt_state=opt_state,
                                step=state.step + 1)
-        metrics = {"loss": loss, "grad_norm": grad_norm, "lr": schedule(state.step)}
+        metrics = {"loss": loss, "grad_norm": grad_norm, "lr": schedule(state.step), **parts}
         return new_state, metrics
 
     return core
@@ -154,13 +194,15 @@ def _train_step_jit(state, batch, key, alphas_cumprod, *, model, config, mesh):
 
 def make_train_step(model, config: TrainConfig, *, mesh=None, alphas_cumprod=None):
     """A jitted pure ``train_step(state, batch, key) -> (state, metrics)``: the loss's
-    gradient, clipped AdamW, then the EMA update (``TrainState``).
+    gradient (the diffusion loss, plus :func:`token_loss` when the batch labels tokens),
+    clipped AdamW, then the EMA update (``TrainState``).
 
     The batch is split over the ``"data"`` axis of ``mesh`` (default: all devices); state,
-    key and metrics (``loss``, ``grad_norm``, ``lr``: scalars) are replicated. A thin wrapper
-    places the inputs (a no-op when they already are; ``train_step.placed`` skips it) and
-    calls a jitted function whose compilation is cached per (model, config without seed and
-    logging fields, mesh): ``diffplan.train.train`` uses the same compiled step.
+    key and metrics (``loss``, ``grad_norm``, ``lr``: scalars; with token labels also
+    ``diffusion_loss`` and ``token_loss``) are replicated. A thin wrapper places the inputs
+    (a no-op when they already are; ``train_step.placed`` skips it) and calls a jitted
+    function whose compilation is cached per (model, config without seed and logging
+    fields, mesh): ``diffplan.train.train`` uses the same compiled step.
     """
     mesh = shd.data_mesh() if mesh is None else mesh
     ab = _alphas_cumprod(config) if alphas_cumprod is None else jnp.asarray(alphas_cumprod)

@@ -408,9 +408,11 @@ def draw_batch(key, *, batch_fn, batch_size, mesh):
 
 
 def _denoiser_summary(values: list[dict]) -> dict:
-    """The mean loss of the window, its last gradient norm and learning rate."""
-    return {"loss": float(np.mean([float(v["loss"]) for v in values])),
-            "grad_norm": float(values[-1]["grad_norm"]), "lr": float(values[-1]["lr"])}
+    """The mean loss (and its parts, when the step reports them) of the window, its last
+    gradient norm and learning rate."""
+    record = {k: float(np.mean([float(v[k]) for v in values]))
+              for k in ("loss", "diffusion_loss", "token_loss") if k in values[0]}
+    return {**record, "grad_norm": float(values[-1]["grad_norm"]), "lr": float(values[-1]["lr"])}
 
 
 def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, out_dir: str, *,

@@ -181,6 +181,9 @@ def test_config_dict_roundtrip_and_hash():
     per_sentence = dataclasses.replace(TINY, sentence_end_id=3)
     assert per_sentence.to_dict()["sentence_end_id"] == 3
     assert DenoiserConfig.from_dict(json.loads(json.dumps(per_sentence.to_dict()))) == per_sentence
+    assert "token_classes" not in d  # likewise no token head
+    headed = dataclasses.replace(TINY, token_classes=2)
+    assert DenoiserConfig.from_dict(json.loads(json.dumps(headed.to_dict()))) == headed
 
 
 @pytest.mark.parametrize("override, match", [
@@ -197,6 +200,8 @@ def test_config_dict_roundtrip_and_hash():
     (dict(num_res_blocks=0), "num_res_blocks"),
     (dict(sentence_end_id=10 ** 6), "sentence_end_id"),
     (dict(sentence_end_id=-2), "sentence_end_id"),
+    (dict(token_classes=-1), "token_classes"),
+    (dict(token_classes=2.0), "token_classes"),
 ])
 def test_bad_config_raises(override, match):
     with pytest.raises(ValueError, match=match):
@@ -234,3 +239,67 @@ def test_the_denoiser_is_registered_under_its_class_path():
     x, t, tokens = spec.inputs(shapes)
     assert (x.shape, t.shape, tokens.shape) == ((2, 16, 16, 7), (2,), (2, 5))
     assert (x.dtype, t.dtype, tokens.dtype) == (jnp.float32, jnp.int32, jnp.int32)
+
+
+def test_token_loss_matches_numpy_cross_entropy():
+    """diffplan.losses.token_loss: sum(w * CE) / #(w > 0), against a plain-numpy softmax; the
+    labels of unweighted tokens (even out of range) never matter."""
+    from diffplan.losses import Batch, token_loss
+
+    rng = np.random.default_rng(0)
+    logits = rng.normal(size=(3, 5, 4)).astype(np.float32)
+    labels = rng.integers(0, 4, size=(3, 5)).astype(np.int32)
+    weights = (rng.random((3, 5)) < 0.5) * rng.uniform(0.5, 2.0, (3, 5))
+    labels_junk = np.where(weights > 0, labels, 99)
+    batch = Batch(np.zeros((3, 2, 2, 3), np.float32), np.ones((3, 5), np.int32),
+                  np.ones((3, 2, 2, 1), np.float32), labels_junk, weights.astype(np.float32))
+    got = float(token_loss(None, lambda v, tokens: jnp.asarray(logits), batch))
+    logp = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+    ce = -np.take_along_axis(logp, labels[..., None], -1)[..., 0]
+    want = (weights * ce).sum() / (weights > 0).sum()
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    none = batch._replace(token_weights=np.zeros((3, 5), np.float32))
+    assert float(token_loss(None, lambda v, tokens: jnp.asarray(logits), none)) == 0.0
+
+
+def test_batch_token_labels_are_checked():
+    from diffplan.losses import Batch, check_batch
+
+    x0, tok, mask = np.zeros((2, 4, 4, 5)), np.ones((2, 6), np.int32), np.ones((2, 4, 4, 2))
+    check_batch(Batch(x0, tok, mask), 2)
+    check_batch(Batch(x0, tok, mask, np.zeros((2, 6), np.int32), np.ones((2, 6))), 2)
+    with pytest.raises(ValueError, match="both or neither"):
+        check_batch(Batch(x0, tok, mask, np.zeros((2, 6), np.int32)), 2)
+    with pytest.raises(ValueError, match="token_weights must have the tokens' shape"):
+        check_batch(Batch(x0, tok, mask, np.zeros((2, 6), np.int32), np.ones((2, 5))), 2)
+
+
+def test_token_head_learns_labels_through_the_train_step():
+    """A denoiser with token_classes: init creates ``token_head``; a batch with token labels
+    adds their cross-entropy to the loss (metrics report both parts) and the head learns them;
+    a denoiser without a head refuses such a batch with a one-line reason."""
+    from diffplan.losses import Batch, make_train_step
+    from diffplan.train_state import TrainConfig, init_train_state
+
+    cfg = dataclasses.replace(TINY, token_classes=2)
+    model = Denoiser(cfg)
+    x0 = make_x(5)
+    labels = (TOKENS % 2).astype(jnp.int32)  # a property of the word: learnable
+    batch = Batch(x0, TOKENS, jnp.ones(x0.shape[:-1] + (2,)), labels,
+                  (TOKENS > 0).astype(jnp.float32))
+    tcfg = TrainConfig(steps=30, batch_size=B, lr=1e-2, warmup_steps=0, num_gen_channels=2)
+    state = init_train_state(model, tcfg, batch)
+    assert state.params["token_head"]["kernel"].shape == (cfg.text_dim, 2)
+    step = make_train_step(model, tcfg)
+    key = jax.random.PRNGKey(1)
+    state, first = step(state, batch, key)
+    np.testing.assert_allclose(float(first["loss"]),
+                               float(first["diffusion_loss"]) + float(first["token_loss"]),
+                               rtol=1e-5)
+    for _ in range(25):
+        state, m = step(state, batch, key)
+    assert float(m["token_loss"]) < 0.5 * float(first["token_loss"])
+    plain = Denoiser(TINY)
+    with pytest.raises(ValueError, match="no token head"):
+        jax.eval_shape(functools.partial(plain.apply, method="token_logits"),
+                       build("embed")[1], TOKENS)

@@ -110,3 +110,50 @@ def test_episode_instructions_state_their_constraints():
             assert grammar.decode(tok) == grammar.render(c, tower_sentence)
             assert (c[:, 0] >= 0).sum() == spec.num_constraints
         assert jnp.asarray(eps.tokens).dtype == jnp.int32
+
+
+def _roles_oracle(text, rows):
+    """Plain Python: (role or None) of each token of a rendered instruction (the words of
+    ``language.split_words`` with "." kept): a block name in the j-th relation sentence is
+    0 if it is that relation's top, 1 if its bottom; None elsewhere."""
+    out, sentence = [], 0
+    relation_start = len([s for s in text.split(".") if s.strip()]) - len(rows)
+    for word in language.split_words(text):
+        j = sentence - relation_start
+        if 0 <= j < len(rows) and word in scene.BLOCK_NAMES:
+            top, bottom = rows[j]
+            out.append(0 if word == scene.BLOCK_NAMES[top] else
+                       1 if word == scene.BLOCK_NAMES[bottom] else None)
+        else:
+            out.append(None)
+        sentence += word == "."
+    return out
+
+
+@pytest.mark.parametrize("phrasing", ("paraphrased", "unseen"))
+def test_token_roles_match_a_plain_parse(phrasing):
+    """Which block each block word names (the Kuka auxiliary labels), for every task column,
+    against a plain-Python reading of the rendered sentence: in inverted phrasings the first
+    block named is the lower one."""
+    from envs.kuka.training import training_example, training_state
+
+    seen_inverted = 0
+    for spec in COLUMNS.values():
+        spec = spec.__class__(spec.kind, spec.multi, phrasing)
+        keys = jax.random.split(jax.random.PRNGKey(11), 16)
+        eps = jax.vmap(lambda k: training_state(k, spec, 0.0)[2])(keys)
+        _, tokens, roles, named = jax.vmap(lambda k: training_example(k, spec, 0.0))(keys)
+        np.testing.assert_array_equal(tokens, eps.tokens)
+        for c, tok, r, m in zip(np.asarray(eps.constraints), np.asarray(eps.tokens),
+                                np.asarray(roles), np.asarray(named)):
+            rows = [(int(t), int(b)) for t, b in c if t >= 0]
+            length = int((tok != 0).sum())
+            expected = _roles_oracle(grammar.decode(tok), rows)
+            assert len(expected) == length
+            got = [int(x) if ok else None for x, ok in zip(r[:length], m[:length])]
+            assert got == expected
+            assert not m[length:].any()
+            assert sum(e is not None for e in expected) == 2 * len(rows)
+            names = [e for e in expected if e is not None]
+            seen_inverted += any(names[i] == 1 for i in range(0, len(names), 2))
+    assert seen_inverted > 0

@@ -245,7 +245,7 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
         scale = batch_size // total
         parts = [fn(jax.random.fold_in(key, i), count * scale)
                  for i, (fn, count) in enumerate(fns)]
-        batch = Batch(*[jnp.concatenate(xs) for xs in zip(*parts)])
+        batch = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
         return batch._replace(tokens=drop_words(jax.random.fold_in(key, len(fns)),
                                                 batch.tokens, word_dropout, SLOT_WORD_IDS))
 

@@ -113,6 +113,31 @@ def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canoni
     return language.concat_segments(segments, jnp.where(present, lengths, 0), MAX_TOKENS)
 
 
+ROLES = ("top", "bottom")
+"""The classes of :func:`token_roles`: a block named in a relation sentence is its upper or its
+lower block, whatever the phrasing's word order."""
+
+
+def token_roles(tokens, constraints, tower_sentence):
+    """(roles int32 (L,), named bool (L,)) of an instruction's tokens; jit/vmap-able.
+
+    tokens: int32 (L,) from :func:`instruction_tokens` for the same constraints (int32
+    (MAX_RELATIONS, 2) (top, bottom), -1 rows absent, in sentence order) and tower_sentence
+    (bool ()). A block's token in relation sentence j gets role 0 if it is that relation's
+    top, 1 if its bottom (:data:`ROLES`); ``named`` marks those tokens (False elsewhere:
+    other words, the tower sentence, padding).
+    """
+    tokens = jnp.asarray(tokens)
+    constraints = jnp.asarray(constraints)
+    ends = (tokens == VOCABULARY.word_to_id["."]).astype(jnp.int32)
+    relation = jnp.cumsum(ends) - ends - jnp.asarray(tower_sentence, jnp.int32)
+    rows = constraints[jnp.clip(relation, 0, constraints.shape[0] - 1)]
+    is_top = tokens == block_token(rows[:, 0])
+    is_bottom = tokens == block_token(rows[:, 1])
+    named = (relation >= 0) & (rows[:, 0] >= 0) & (is_top | is_bottom)
+    return jnp.where(is_bottom, 1, 0).astype(jnp.int32), named
+
+
 def render(constraints, tower_sentence: bool, relation_templates=None, tower_template: int = 0):
     """Plain-Python rendering of an instruction (the reference for tests): constraints
     ((top, bottom), ...) block indices (-1 rows skipped), each relation in

@@ -105,10 +105,15 @@ def training_state(key, spec: TaskSpec, perturb_prob: float):
 
 
 def training_example(key, spec: TaskSpec, perturb_prob: float):
-    """One example of a task spec: (x0 float32 (24, 24, C + G), tokens int32 (L,)): the
-    planning tensor (:func:`plan_example`) of a :func:`training_state`."""
+    """One example of a task spec: (x0 float32 (24, 24, C + G), tokens int32 (L,), roles int32
+    (L,), named bool (L,)): the planning tensor (:func:`plan_example`) of a
+    :func:`training_state`, its instruction, and which block each named block token is
+    (``grammar.token_roles``)."""
     pos, quat, episode = training_state(key, spec, perturb_prob)
-    return plan_example(pos, quat, episode), episode.tokens
+    single = (episode.constraints[:, 0] >= 0).sum() == 1  # the tower sentence's condition
+    roles, named = grammar.token_roles(episode.tokens, episode.constraints,
+                                       episode.tower & single)
+    return plan_example(pos, quat, episode), episode.tokens, roles, named
 
 
 # ------------------------------------------------------------------------------ batches
@@ -151,19 +156,25 @@ class Recipe:
     multiple of their number); a spec may also be given as its fields ``(kind, multi,
     language)``, as checkpoints record it (what ``bench_train --set specs=[[...], ...]``
     passes); list a spec twice to give it twice the share. perturb_prob: the share of
-    examples whose moved blocks are perturbed. goal_loss_weight: the weight of the goal and pick channels in the loss relative
-    to the path channel's.
+    examples whose moved blocks are perturbed. goal_loss_weight: the weight of the goal and
+    pick channels in the loss relative to the path channel's. role_loss_weight: 0, or the
+    weight of an auxiliary loss (``diffplan.losses.token_loss``) that asks the denoiser's token
+    head which block each block word of a relation names, the upper or the lower
+    (``grammar.token_roles``); it needs a denoiser with ``token_classes=2``.
     """
 
     specs: tuple = SPECS
     perturb_prob: float = 0.5
     goal_loss_weight: float = 3.0
+    role_loss_weight: float = 0.0
 
     def __post_init__(self):
         if not 0 <= self.perturb_prob <= 1:
             raise ValueError(f"perturb_prob must be in [0, 1], got {self.perturb_prob}")
         if not self.goal_loss_weight > 0:
             raise ValueError(f"goal_loss_weight must be > 0, got {self.goal_loss_weight}")
+        if not self.role_loss_weight >= 0:
+            raise ValueError(f"role_loss_weight must be >= 0, got {self.role_loss_weight}")
         object.__setattr__(self, "specs", tuple(map(as_task_spec, self.specs)))
         if not self.specs:
             raise ValueError("specs must name at least one task spec")
@@ -175,12 +186,17 @@ class Recipe:
         from diffplan.train import Batch
 
         specs, prob, weight = self.specs, self.perturb_prob, self.goal_loss_weight
+        role_weight = self.role_loss_weight
 
         def batch_fn(key, batch_size):
-            x0, tokens = spec_examples(training_example, key, batch_size, specs, prob)
+            x0, tokens, roles, named = spec_examples(training_example, key, batch_size, specs,
+                                                     prob)
             mask = jnp.broadcast_to(jnp.array([1.0, weight, weight], jnp.float32),
                                     x0.shape[:-1] + (NUM_GEN_CHANNELS,))
-            return Batch(x0=x0, tokens=tokens, loss_mask=mask)
+            if not role_weight:
+                return Batch(x0=x0, tokens=tokens, loss_mask=mask)
+            return Batch(x0=x0, tokens=tokens, loss_mask=mask, token_labels=roles,
+                         token_weights=jnp.where(named, role_weight, 0.0))
 
         return batch_fn
 
@@ -196,6 +212,9 @@ class Recipe:
 
     def metadata(self) -> dict:
         """What a checkpoint records of the recipe (compared when resuming)."""
-        return {"specs": [[s.kind, s.multi, s.language] for s in self.specs],
+        meta = {"specs": [[s.kind, s.multi, s.language] for s in self.specs],
                 "perturb_prob": self.perturb_prob, "goal_loss_weight": self.goal_loss_weight,
                 "num_gen_channels": NUM_GEN_CHANNELS, "vocabulary": list(grammar.VOCAB)}
+        if self.role_loss_weight:  # absent at 0, as in checkpoints from before it
+            meta["role_loss_weight"] = self.role_loss_weight
+        return meta
