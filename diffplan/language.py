@@ -281,3 +281,16 @@ def match_template(tokens, compiled):
         slots.append(jnp.where(jnp.any(at) & (index >= 0), tokens[jnp.argmax(at)], 0))
     return index.astype(jnp.int32), jnp.stack(slots).astype(jnp.int32) if slots else \
         jnp.zeros((0,), jnp.int32)
+
+
+def slot_roles(tokens, compiled):
+    """(roles int32 (L,), named bool (L,)): which slot each token of an instruction fills,
+    read off the compiled template it matches (:func:`match_template`): slot marker -(k + 1)
+    gives role k; ``named`` marks slot tokens (all False when no template matches). jit-able
+    in tokens; the labels of an auxiliary token loss (``diffplan.losses.token_loss``)."""
+    import jax.numpy as jnp
+
+    index, _ = match_template(tokens, compiled)
+    row = jnp.asarray(np.asarray(compiled))[jnp.maximum(index, 0)]
+    named = (row < 0) & (index >= 0)
+    return jnp.where(named, -row - 1, 0).astype(jnp.int32), named

@@ -126,3 +126,32 @@ def test_fill_template_matches_render(fill_batch, setting):
 def test_phrasings_are_the_settings_templates():
     assert grammar.phrasings(True) == grammar.TEMPLATES["p_mo2g"] == grammar.TEMPLATES["p_mo2g_far"]
     assert grammar.phrasings(False) == grammar.TEMPLATES["mo1g"] == grammar.TEMPLATES["1o1g"]
+
+
+@pytest.mark.parametrize("setting", ["mo1g", "p_mo2g"])
+def test_slot_roles_name_the_slot_each_word_fills(setting):
+    """diffplan.language.slot_roles on rendered instructions of every phrasing, against a
+    plain-Python reading of the template text: the k-th slot's words get role k (the grid
+    recipe's auxiliary labels: reference, target, direction), every other word none."""
+    from diffplan.language import slot_roles
+    from envs.gridworld.training import ROLES
+
+    compiled = grammar.compile_templates(setting)
+    rng = np.random.default_rng(0)
+    fillings = all_fillings(setting)
+    cases = [fillings[i] for i in rng.choice(len(fillings), 60, replace=False)]
+    cases += [f for f in fillings if f[0] in grammar.UNSEEN_TEMPLATES][:8]
+    texts = [grammar.render(setting, *case) for case in cases]
+    tokens = np.stack([grammar.encode(t) for t in texts])
+    roles, named = jax.jit(jax.vmap(lambda t: slot_roles(t, compiled)))(tokens)
+    slot_role = {"{ref}": ROLES.index("reference"), "{target}": ROLES.index("target"),
+                 "{dir}": ROLES.index("direction")}
+    for (template, *_), ids, r, m in zip(cases, tokens, np.asarray(roles), np.asarray(named)):
+        words = grammar.TEMPLATES[setting][template].replace("{", " {").replace("}", "} ")
+        expected = [slot_role.get(w) for w in grammar.split_words(words)]
+        n = int((ids != 0).sum())
+        assert len(expected) == n
+        assert [int(x) if ok else None for x, ok in zip(r[:n], m[:n])] == expected
+        assert not m[n:].any()
+    unknown = grammar.encode("Go to the apple and the pear.")
+    assert not np.asarray(slot_roles(unknown, compiled)[1]).any()

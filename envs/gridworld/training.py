@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffplan.language import check_dropout_rate, check_training_language, drop_words
+from diffplan.language import (check_dropout_rate, check_training_language, drop_words,
+                               slot_roles)
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import Episode, expert_path_positions, generate, OBSTACLE_CELL
@@ -170,7 +171,7 @@ def near_agent(agent):
 def make_batch_fn(config: GridConfig, goal_channel: bool = True,
                   goal_loss_seen_only: bool = False, detour_prob: float = 0.0,
                   goal_loss_weight: float = 1.0, path_near_agent_weight: float = 0.0,
-                  later_leg_value: float = 1.0):
+                  later_leg_value: float = 1.0, role_loss_weight: float = 0.0):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of examples of one setting.
 
     goal_channel=False trains without goal information (the paper's "- g" ablation: the goal
@@ -182,8 +183,12 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     neighbours (:func:`near_agent`; 0: every cell weighs 1), where the plan's path decides the
     next move of the paper's psi (``GridTask(psi_kind="follow")``). later_leg_value: the path
     target on the route's leg after the reference (:func:`training_example`; 1: one value
-    for the whole route).
+    for the whole route). role_loss_weight: 0, or the weight of an auxiliary loss
+    (``diffplan.losses.token_loss``) asking the denoiser's token head which slot each slot word
+    fills (:data:`ROLES`, ``diffplan.language.slot_roles``); it needs ``token_classes=3``.
     """
+    if not role_loss_weight >= 0:
+        raise ValueError(f"role_loss_weight must be >= 0, got {role_loss_weight}")
     if not 0 < later_leg_value <= 1:
         raise ValueError(f"later_leg_value must be in (0, 1], got {later_leg_value}")
     if not path_near_agent_weight >= 0:
@@ -206,9 +211,19 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         if not goal_channel:
             goal, subgoal = jnp.zeros_like(goal), jnp.zeros_like(subgoal)
         mask = jnp.stack([path, goal, subgoal], axis=-1)
-        return Batch(x0=x0, tokens=tokens, loss_mask=mask)
+        if not role_loss_weight:
+            return Batch(x0=x0, tokens=tokens, loss_mask=mask)
+        roles, named = jax.vmap(lambda t: slot_roles(t, templates))(tokens)
+        return Batch(x0=x0, tokens=tokens, loss_mask=mask, token_labels=roles,
+                     token_weights=jnp.where(named, role_loss_weight, 0.0))
 
+    templates = grammar.compile_templates(config.setting)
     return batch_fn
+
+
+ROLES = ("reference", "target", "direction")
+"""The classes of the grid world's token roles: the slot a word fills (grammar slot k is
+role k), whatever the phrasing's word order."""
 
 
 SLOT_WORD_IDS = np.concatenate([
@@ -262,7 +277,9 @@ class Recipe:
     ablation. language: the phrasing of the examples' instructions ("mixed": canonical half of
     the time, else one of the training paraphrases; the held-out phrasings never).
     word_dropout: the probability that a training instruction's word other than an object name
-    or direction is dropped (0: none; see :func:`make_mixture_batch_fn`).
+    or direction is dropped (0: none; see :func:`make_mixture_batch_fn`). role_loss_weight: 0,
+    or the weight of the auxiliary slot-role loss (:func:`make_batch_fn`; the denoiser needs
+    ``token_classes=3``).
     """
 
     mixture: tuple = TRAINING_MIXTURE
@@ -273,6 +290,7 @@ class Recipe:
     path_near_agent_weight: float = 0.0
     later_leg_value: float = 1.0
     word_dropout: float = 0.0
+    role_loss_weight: float = 0.0
 
     def batch_fn(self):
         return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
@@ -280,7 +298,8 @@ class Recipe:
                                      detour_prob=self.detour_prob,
                                      goal_loss_weight=self.goal_loss_weight,
                                      path_near_agent_weight=self.path_near_agent_weight,
-                                     later_leg_value=self.later_leg_value)
+                                     later_leg_value=self.later_leg_value,
+                                     role_loss_weight=self.role_loss_weight)
 
     @property
     def batch_multiple(self) -> int:
@@ -289,7 +308,8 @@ class Recipe:
 
     def init_batch(self):
         """Shapes of one example (every setting's examples have the same shapes)."""
-        fn = make_batch_fn(make_config(self.mixture[0][0]))
+        fn = make_batch_fn(make_config(self.mixture[0][0]),
+                           role_loss_weight=self.role_loss_weight)
         return jax.eval_shape(lambda k: fn(k, 1), jax.random.PRNGKey(0))
 
     def metadata(self) -> dict:
@@ -303,7 +323,9 @@ class Recipe:
                    if self.path_near_agent_weight else {}),
                 **({"later_leg_value": self.later_leg_value}
                    if self.later_leg_value != 1.0 else {}),
-                **({"word_dropout": self.word_dropout} if self.word_dropout else {})}
+                **({"word_dropout": self.word_dropout} if self.word_dropout else {}),
+                **({"role_loss_weight": self.role_loss_weight}
+                   if self.role_loss_weight else {})}
 
 
 # ------------------------------------------------------------------ the episodes of a run
