@@ -146,7 +146,8 @@ def test_planner_goal_build_orders():
 @pytest.mark.parametrize("spec", training.SPECS[:4], ids=lambda s: s.name)
 def test_training_examples_are_the_experts_next_placement(spec):
     keys = jax.random.split(jax.random.PRNGKey(7), 16)
-    x0, tokens = jax.vmap(training.training_example, in_axes=(0, None, None))(keys, spec, 0.5)
+    x0, tokens, _, _ = jax.vmap(training.training_example, in_axes=(0, None, None))(
+        keys, spec, 0.5)
     x0 = np.asarray(x0)
     assert x0.shape == (16, 24, 24, 5) and tokens.shape == (16, 40)
     assert set(np.unique(x0[..., 2:])) <= {-1.0, 1.0}
