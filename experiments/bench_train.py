@@ -140,7 +140,8 @@ def _train_to_target(world, args, metrics, mode, eval_batch, train_dir):
     while True:
         try:
             bw.run_training(world, train_dir, model_size=args.model_size,
-                            checkpoint_every=args.eval_every, progress=progress,
+                            checkpoint_every=world.checkpoint_interval(args.eval_every),
+                            progress=progress,
                             callback=pause, settings=args.set,
                             batch_size=args.batch_size)
             finished = True

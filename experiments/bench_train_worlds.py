@@ -26,6 +26,16 @@ class World:
     default_batch: int
     train_steps: int
     train_command: str
+    checkpoint_every: int
+    """The world's --train checkpoint interval (steps)."""
+
+    def checkpoint_interval(self, eval_every: int) -> int:
+        """Steps between checkpoints of a run evaluated every eval_every steps: the largest
+        divisor of eval_every that is at most the world's own interval, so every evaluation
+        step has its checkpoint and a stopped run loses at most that many steps."""
+        import math
+
+        return math.gcd(int(eval_every), self.checkpoint_every)
 
     def default_train_dir(self) -> str:
         suffix = "" if self.name == "gridworld" else f"_{self.name}"
@@ -36,16 +46,16 @@ def _kuka_world() -> World:
     from experiments import kuka_spec as ks
 
     return World("kuka", ("SR",), ks.MODES, ks.MAIN_MODE, ks.TRAIN_BATCH, ks.TRAIN_STEPS,
-                 "python -m experiments.kuka_stacking --train")
+                 "python -m experiments.kuka_stacking --train", ks.CHECKPOINT_EVERY)
 
 
 def _grid_world() -> World:
-    from experiments.gridworld_spec import SPECS
+    from experiments.gridworld_spec import CHECKPOINT_EVERY, SPECS
 
     spec = SPECS["p_mo2g"]
     return World("gridworld", ("SR", "SR_ordered"), ("on_the_fly", "warm_start"), "warm_start",
                  spec.batch_size, spec.train_steps,
-                 "python -m experiments.compile_p_mo2g --train")
+                 "python -m experiments.compile_p_mo2g --train", CHECKPOINT_EVERY)
 
 
 WORLDS = {"gridworld": _grid_world(), "kuka": _kuka_world()}

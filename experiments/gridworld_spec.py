@@ -27,6 +27,9 @@ METHOD_NAMES = {"one_shot": "one-shot", "k_shot": "two-shot", "on_the_fly": "on-
 
 LANGUAGE_CHOICES = harness.LANGUAGE_CHOICES
 
+CHECKPOINT_EVERY = 500
+"""Steps between the checkpoints of a grid-world --train run."""
+
 
 def method_name(mode_or_name: str, language: str = "canonical") -> str:
     """A row's method: the mode's name (or a baseline's), with the phrasing unless
@@ -114,7 +117,7 @@ class ExperimentSpec:
                       goal_channel=self.goal_channel, later_leg_value=self.later_leg_value)
 
     def train_config(self, seed: int = 0, steps: int | None = None,
-                     checkpoint_every: int = 500):
+                     checkpoint_every: int = CHECKPOINT_EVERY):
         from envs.gridworld.task import NUM_GEN_CHANNELS
         return recipes.train_config(
             seed=seed, steps=self.train_steps if steps is None else steps,
@@ -175,7 +178,7 @@ SPECS = {
 
 def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: int | None = None,
                   progress: bool = True, model_size: str = "default",
-                  checkpoint_every: int = 500, callback=None):
+                  checkpoint_every: int = CHECKPOINT_EVERY, callback=None):
     """Trains the setting's denoiser into out_dir with the grid world's training recipe
     (envs.gridworld.training.Recipe), resuming if out_dir holds a checkpoint.
     Returns (ema params, model config, seconds)."""

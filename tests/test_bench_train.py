@@ -208,3 +208,15 @@ def test_kuka_specs_can_be_set_as_lists():
             Recipe(specs=bad)
     with pytest.raises(ValueError, match="unseen"):
         Recipe(specs=[["stacking", False, "unseen"]])
+
+
+def test_checkpoints_fall_on_every_evaluation_and_stay_frequent():
+    """bench_train checkpoints at least as often as the world's --train, and on every
+    evaluation step (the evaluation reads that checkpoint)."""
+    from experiments.bench_train_worlds import WORLDS
+
+    for world in WORLDS.values():
+        for eval_every in (1, 7, 250, 1000, 12000, 12345):
+            every = world.checkpoint_interval(eval_every)
+            assert 1 <= every <= world.checkpoint_every and eval_every % every == 0
+    assert WORLDS["kuka"].checkpoint_interval(12000) == WORLDS["kuka"].checkpoint_every
