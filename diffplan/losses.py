@@ -33,8 +33,8 @@ from diffplan.schedule import cosine_schedule
 from diffplan.train_state import (TrainConfig, TrainState, hashable, lr_schedule,
                                   make_optimizer)
 
-__all__ = ["Batch", "check_batch", "diffusion_loss", "token_loss", "make_train_step",
-           "make_val_loss"]
+__all__ = ["Batch", "check_batch", "with_token_labels", "diffusion_loss", "token_loss",
+           "make_train_step", "make_val_loss"]
 
 
 class Batch(NamedTuple):
@@ -81,6 +81,17 @@ def check_batch(batch: Batch, num_gen_channels: int) -> None:
         if value is not None and tuple(value.shape) != tuple(tokens.shape):
             raise ValueError(f"Batch.{name} must have the tokens' shape {tuple(tokens.shape)}, "
                              f"got {tuple(value.shape)}")
+
+
+def with_token_labels(batch: Batch, labels: jax.Array, labelled: jax.Array,
+                      weight: float) -> Batch:
+    """``batch`` with token labels (int (B, L)) weighted ``weight`` where ``labelled`` (bool
+    (B, L)), 0 elsewhere; the batch unchanged when weight is 0 (no token loss: the step then
+    matches a batch that never had labels)."""
+    if not weight:
+        return batch
+    return batch._replace(token_labels=labels.astype(jnp.int32),
+                          token_weights=jnp.where(labelled, jnp.float32(weight), 0.0))
 
 
 def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,

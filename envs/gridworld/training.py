@@ -197,7 +197,10 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         raise ValueError(f"goal_loss_weight must be > 0, got {goal_loss_weight}")
     if not 0 <= detour_prob <= 1:
         raise ValueError(f"detour_prob must be in [0, 1], got {detour_prob}")
+    from diffplan.losses import with_token_labels
     from diffplan.train import Batch
+
+    templates = grammar.compile_templates(config.setting)
 
     def batch_fn(key, batch_size):
         keys = training_episode_keys(key, batch_size)
@@ -211,13 +214,10 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         if not goal_channel:
             goal, subgoal = jnp.zeros_like(goal), jnp.zeros_like(subgoal)
         mask = jnp.stack([path, goal, subgoal], axis=-1)
-        if not role_loss_weight:
-            return Batch(x0=x0, tokens=tokens, loss_mask=mask)
         roles, named = jax.vmap(lambda t: slot_roles(t, templates))(tokens)
-        return Batch(x0=x0, tokens=tokens, loss_mask=mask, token_labels=roles,
-                     token_weights=jnp.where(named, role_loss_weight, 0.0))
+        return with_token_labels(Batch(x0=x0, tokens=tokens, loss_mask=mask), roles, named,
+                                 role_loss_weight)
 
-    templates = grammar.compile_templates(config.setting)
     return batch_fn
 
 

@@ -43,6 +43,13 @@ PERTURB_YAW = 0.02
 """Standard deviation (rad) of their turn about z (clipped at 2.5x)."""
 
 
+def single_tower(episode: Episode):
+    """bool (): a single-constraint stacking episode, whose instruction opens with the tower
+    sentence (``episode.generate``) and whose other two blocks the expert stacks in colour
+    order (:func:`planner_goal`)."""
+    return episode.tower & ((episode.constraints[:, 0] >= 0).sum() == 1)
+
+
 def planner_goal(episode: Episode):
     """int32 (3, 2) the relations the training expert builds, in build order (rows of -1
     padding last); see the module docstring."""
@@ -61,8 +68,7 @@ def planner_goal(episode: Episode):
     blocks = jnp.arange(scene.NUM_BLOCKS)
     rest = jnp.sort(jnp.where((blocks == top) | (blocks == bottom), scene.NUM_BLOCKS, blocks))
     tower = jnp.stack([constraints[0], jnp.stack([rest[0], top]), jnp.stack([rest[1], rest[0]])])
-    single_tower = episode.tower & (valid.sum() == 1)
-    return jnp.where(single_tower, tower, built).astype(jnp.int32)
+    return jnp.where(single_tower(episode), tower, built).astype(jnp.int32)
 
 
 def _yaw_quat(yaw):
@@ -110,9 +116,8 @@ def training_example(key, spec: TaskSpec, perturb_prob: float):
     :func:`training_state`, its instruction, and which block each named block token is
     (``grammar.token_roles``)."""
     pos, quat, episode = training_state(key, spec, perturb_prob)
-    single = (episode.constraints[:, 0] >= 0).sum() == 1  # the tower sentence's condition
     roles, named = grammar.token_roles(episode.tokens, episode.constraints,
-                                       episode.tower & single)
+                                       single_tower(episode))
     return plan_example(pos, quat, episode), episode.tokens, roles, named
 
 
@@ -183,6 +188,7 @@ class Recipe:
 
     def batch_fn(self):
         """batch_fn(key, batch_size) -> diffplan.train.Batch."""
+        from diffplan.losses import with_token_labels
         from diffplan.train import Batch
 
         specs, prob, weight = self.specs, self.perturb_prob, self.goal_loss_weight
@@ -193,10 +199,8 @@ class Recipe:
                                                      prob)
             mask = jnp.broadcast_to(jnp.array([1.0, weight, weight], jnp.float32),
                                     x0.shape[:-1] + (NUM_GEN_CHANNELS,))
-            if not role_weight:
-                return Batch(x0=x0, tokens=tokens, loss_mask=mask)
-            return Batch(x0=x0, tokens=tokens, loss_mask=mask, token_labels=roles,
-                         token_weights=jnp.where(named, role_weight, 0.0))
+            return with_token_labels(Batch(x0=x0, tokens=tokens, loss_mask=mask), roles, named,
+                                     role_weight)
 
         return batch_fn
 
