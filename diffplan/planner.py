@@ -43,7 +43,7 @@ from diffplan.sampler import denoiser_calls, sample
 __all__ = ["MODES", "REPLAN_TRIGGERS", "MIN_SUB_BATCH", "PlannerConfig", "PlannerState", "Planner", "subset_update"]
 
 MODES = ("one_shot", "k_shot", "on_the_fly", "warm_start")
-REPLAN_TRIGGERS = ("always", "on_change")
+REPLAN_TRIGGERS = ("always", "on_change", "on_refuted")
 MIN_SUB_BATCH = 16
 """``plan_batch`` plans in sub-batches of at least this many episodes (padding rows are
 computed and dropped). Measured on the XLA CPU backend of jax 0.6.2: the shipped UNet's output
@@ -77,7 +77,12 @@ class PlannerConfig:
     replan: in on_the_fly and warm_start modes, "always" re-plans before every move (the
     paper); "on_change" only when the world says the plan is stale (diffplan.rollouts.move
     asks ``task.new_information(condition at the last plan, condition)`` and
-    ``task.at_goal_estimate``: new cells seen, or the plan's (sub-)goal reached).
+    ``task.at_goal_estimate``: new cells seen, or the plan's (sub-)goal reached);
+    "on_refuted" only when what the plan assumed is contradicted by what is now known
+    (``task.plan_refuted(state, plan)``, a task's optional method: in the grid world the cell
+    the plan heads for has been seen and is not the object sought, or that object has come into
+    view elsewhere) or the plan's (sub-)goal is reached: the agent keeps its guess of a hidden
+    target until it is disproved instead of drawing a new guess at every move.
     """
 
     mode: str = "on_the_fly"

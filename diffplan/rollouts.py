@@ -63,7 +63,8 @@ def move(task, planner: Planner, states, planner_states: PlannerState, active,
          chunk: Optional[int] = None, fresh_chunk: Optional[int] = None):
     """One move of Algorithm 1 for a batch of B episodes: plan (where the planner's mode asks
     for it; in k_shot mode when ``task.at_goal_estimate`` of the current plan; with the
-    "on_change" trigger when ``task.new_information`` or ``task.at_goal_estimate``), act with
+    "on_change" trigger when ``task.new_information`` or ``task.at_goal_estimate``; with
+    "on_refuted" when ``task.plan_refuted`` or ``task.at_goal_estimate``), act with
     ``task.psi``, step the world. Inactive episodes (active bool (B,) False) are left as they
     are. chunk / fresh_chunk: see ``Planner.plan_batch``.
 
@@ -81,6 +82,12 @@ def move(task, planner: Planner, states, planner_states: PlannerState, active,
         replan = jax.vmap(task.at_goal_estimate)(states, planner_states.plan)
     elif config.replan == "on_change" and config.mode != "one_shot":
         replan = (jax.vmap(task.new_information)(planner_states.condition, conditions)
+                  | jax.vmap(task.at_goal_estimate)(states, planner_states.plan))
+    elif config.replan == "on_refuted" and config.mode != "one_shot":
+        if not callable(getattr(task, "plan_refuted", None)):
+            raise ValueError(f"replan='on_refuted' needs a task that says when a plan is "
+                             f"refuted (task.plan_refuted); {type(task).__name__} has none")
+        replan = (jax.vmap(task.plan_refuted)(states, planner_states.plan)
                   | jax.vmap(task.at_goal_estimate)(states, planner_states.plan))
     plans, planner_states = planner.plan_batch(planner_states, conditions, active, replan,
                                                chunk=chunk, fresh_chunk=fresh_chunk)

@@ -55,6 +55,9 @@ class Task(Protocol):
         """bool (): ``condition`` (H, W, C) shows something ``old_condition`` (the one the
         current plan was made from) did not (the "on_change" re-planning trigger)."""
 
+    # Optional: ``plan_refuted(state, plan) -> bool ()``: what the plan assumed is contradicted
+    # by what the agent now knows (the "on_refuted" re-planning trigger; a task without it
+    # refuses that trigger).
     # Optional: a task whose psi only follows the plan's marks sets ``follows_plan = True`` and
     # defines ``unfollowable(state, plan) -> bool ()`` (the plan gives psi no move there); the
     # rollout then plans again once and counts the moves psi still had to make on its own

@@ -9,7 +9,7 @@ import os
 from envs.gridworld.task import PSI_KINDS
 from experiments import cli, harness
 from experiments.gridworld_spec import (LANGUAGE_CHOICES, MODE_REPLAN, TRAINING_NAME,
-                                        ExperimentSpec)
+                                        TRIGGER_WORDS, ExperimentSpec)
 from experiments.recipes import MODEL_SIZES
 
 
@@ -50,10 +50,13 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "observation did (default %(default)s)")
     p.add_argument("--eta", type=float, default=spec.eta,
                    help="sampler stochasticity: 0 = DDIM (default), 1 = DDPM-like")
-    p.add_argument("--replan", choices=("always", "on_change"), default=spec.replan,
+    p.add_argument("--replan", choices=tuple(TRIGGER_WORDS), default=spec.replan,
                    help="re-planning trigger of every re-planning row: before every move "
-                        "('always', the paper) or only when new cells were seen or the plan's "
-                        "sub-goal was reached ('on_change'); default: each row's own, "
+                        "('always', the paper), only when new cells were seen or the plan's "
+                        "sub-goal was reached ('on_change'), or only when a seen cell disproved "
+                        "where the plan heads (it is not the object sought, or that object is "
+                        "seen elsewhere) or the sub-goal was reached ('on_refuted': a guess of "
+                        "a hidden target is kept until disproved); default: each row's own, "
                         + ", ".join(f"{m} {r}" for m, r in MODE_REPLAN.items()))
     p.add_argument("--psi", choices=PSI_KINDS, default=spec.psi,
                    help="how a plan becomes a move: 'search' (a Dijkstra search toward the "

@@ -17,7 +17,9 @@ shipped checkpoint is checkpoints/compile_gridworld and `--train` of any setting
 
 MODE_REPLAN = {"on_the_fly": "always", "warm_start": "on_change"}
 TRIGGER_WORDS = {"always": "before every move",
-                 "on_change": "when new cells were seen or the sub-goal was reached"}
+                 "on_change": "when new cells were seen or the sub-goal was reached",
+                 "on_refuted": "when what was seen disproved the plan's guess or the sub-goal "
+                               "was reached"}
 """Each re-planning mode's default trigger: the paper-style on-the-fly row runs a full denoising
 before every move (the paper's Algorithm 1); the warm-start row, the cheap default, re-plans
 when the observation changed or the plan's sub-goal was reached."""

@@ -6,7 +6,7 @@ A configuration names its task by its registry name (``envs.names()``): "task":
 instead ("setting": "p_mo2g", as the shipped sweep files do); without either the task is
 gridworld/p_mo2g. The keys every task takes: task, checkpoint, modes (one planning mode),
 num_steps, seed, episodes, batch_size. The grid world's: setting, eta, warm_start_step,
-warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change"; missing: the
+warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change" | "on_refuted"; missing: the
 mode's own, as in the experiment CLIs), language, psi ("search" | "follow", the CLIs' --psi).
 The Kuka world's: multi (several instructed
 relations: the multi-constraint column), language, carry ("path" | "arc"). language is the
@@ -45,7 +45,7 @@ TYPES = {"task": str, "setting": str, "checkpoint": str, "modes": str, "num_step
          "replan": str, "seed": int, "episodes": int, "batch_size": int, "multi": bool,
          "language": str, "carry": str, "psi": str}
 CHOICES = {"setting": tuple(gs.SPECS), "noise": ("fresh", "episode"),
-           "replan": ("always", "on_change"), "language": ks.LANGUAGES, "carry": ks.CARRIES,
+           "replan": tuple(gs.TRIGGER_WORDS), "language": ks.LANGUAGES, "carry": ks.CARRIES,
            "psi": PSI_KINDS}
 MINIMUMS = {"episodes": 1, "batch_size": 1, "seed": 0, "num_steps": 1, "warm_num_steps": 1,
             "warm_start_step": 0}

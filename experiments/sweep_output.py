@@ -45,7 +45,7 @@ def label(row) -> str:
                 + (" arc" if row["carry"] == "arc" else ""))
     extra = (f" {row['warm_num_steps']}/{row['warm_start_step']}" if row["modes"] ==
              "warm_start" else f" {row['num_steps']}")
-    return (f"{row['modes']}{extra}" + (" on_change" if row["replan"] == "on_change" else "")
+    return (f"{row['modes']}{extra}" + (f" {row['replan']}" if row["replan"] in ("on_change", "on_refuted") else "")
             + (f" eta{row['eta']:g}" if row["eta"] else "")
             + (f" {row['language']}" if row.get("language", "canonical") != "canonical"
                else "")

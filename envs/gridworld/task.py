@@ -106,6 +106,30 @@ def goal_estimate(state: env.State, plan, use_goal_channel: bool = True):
     return goal_cell(plan, known_obstacle)
 
 
+def sought_cell(state: env.State, has_reference: bool):
+    """int32 (2,): the cell of the object the instruction asks for next: the reference while a
+    setting with one (has_reference) has not had the agent stand on it, else the target."""
+    if not has_reference:
+        return state.target
+    return jnp.where(state.reached_reference, state.target, state.reference).astype(jnp.int32)
+
+
+def plan_refuted(state: env.State, plan, has_reference: bool, use_goal_channel: bool = True):
+    """bool (): what the agent now knows contradicts the plan (plan float32 (H, W, G)): the
+    cell it heads for (:func:`goal_estimate`) has been seen and is not the object the
+    instruction asks for next, or that object has been seen and the plan heads elsewhere, or
+    the plan marks no cell it may still head for (its sub-goal cell became a known obstacle or
+    was visited). Only seen cells are read: a cell the agent has seen shows which object it
+    holds."""
+    heading = goal_estimate(state, plan, use_goal_channel)
+    sought = sought_cell(state, has_reference)
+    wrong = jnp.any(heading != sought) & (state.seen[heading[0], heading[1]]
+                                         | state.seen[sought[0], sought[1]])
+    if use_goal_channel and plan.shape[-1] >= 3:
+        wrong = wrong | (plan[heading[0], heading[1], 2] <= 0)
+    return wrong
+
+
 PSI_KINDS = ("search", "follow")
 """``GridTask.psi_kind``: Dijkstra toward the sub-goal over path-cheapened cells (:func:`psi`),
 or the paper's neighbour-following psi (:func:`psi_follow`)."""
@@ -259,6 +283,11 @@ class GridTask:
         """bool (): a cell's token (channel 0) differs: newly seen cells (objects and
         obstacles never move, so nothing else changes what is known of the world)."""
         return jnp.any(old_condition[..., 0] != condition[..., 0])
+
+    def plan_refuted(self, state: env.State, plan):
+        """bool (): the plan's guess is disproved by what has been seen (the "on_refuted"
+        re-planning trigger; :func:`plan_refuted`)."""
+        return plan_refuted(state, plan, self.config.has_reference, self.use_goal_channel)
 
     def at_goal_estimate(self, state: env.State, plan):
         """bool (): the agent stands on the cell the plan heads for (with a sub-goal channel:
