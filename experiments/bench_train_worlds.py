@@ -77,7 +77,7 @@ def parse_settings(items, recipe) -> tuple[dict, dict, dict]:
     from diffplan.denoiser import DenoiserConfig
     from diffplan.train_state import TrainConfig
 
-    train_fields = {f.name for f in dataclasses.fields(TrainConfig)} - {"seed"}
+    train_fields = {f.name for f in dataclasses.fields(TrainConfig)}
     model_fields = {f.name for f in dataclasses.fields(DenoiserConfig)} - {
         "vocab_size", "max_tokens", "num_cond_channels", "num_gen_channels"}
     recipe_fields = {f.name for f in dataclasses.fields(recipe)}
@@ -111,7 +111,8 @@ def training(world: World, model_size: str, checkpoint_every: int, settings=(), 
     train_steps steps, seed 0); overrides: TrainConfig fields (None: the recipe's), e.g.
     batch_size, or log_every (which does not change the computation); settings: --set items
     (:func:`parse_settings`), applied to the TrainConfig, the DenoiserConfig and the recipe
-    (the warm-up stays at most a tenth of the steps, recipes.warmup)."""
+    (the warm-up stays at most a tenth of the steps, recipes.warmup; --set seed=N trains
+    another seed)."""
     if world.name == "kuka":
         from envs.kuka.training import Recipe
         from experiments import kuka_spec as ks

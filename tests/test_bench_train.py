@@ -171,8 +171,8 @@ def test_settings_reach_the_training_and_the_model():
 
     model, config, _ = bw.training(bw.WORLDS["gridworld"], "default", 1,
                                    ["steps=1000", "lr=0.002", "cross_attn_levels=[1, 2]",
-                                    "ema_decay=0.99"])
-    assert (config.steps, config.lr, config.ema_decay) == (1000, 0.002, 0.99)
+                                    "ema_decay=0.99", "seed=3"])
+    assert (config.steps, config.lr, config.ema_decay, config.seed) == (1000, 0.002, 0.99, 3)
     assert config.warmup_steps <= 100 and model.cross_attn_levels == (1, 2)
 
 
