@@ -125,3 +125,20 @@ def test_a_task_without_plan_refuted_refuses_the_trigger(p_mo2g_episodes):
     episodes = jax.tree.map(lambda x: x[:2], p_mo2g_episodes)
     with pytest.raises(ValueError, match="plan_refuted"):
         rollout(task, planner, keys, episodes)
+
+
+def test_a_follow_plan_is_dropped_where_its_path_runs_out():
+    """With psi_kind "follow" a kept plan is also refuted where no unvisited neighbour of the
+    agent is marked as path (it would walk the agent back over its own track)."""
+    from envs.gridworld.task import path_ahead
+
+    task = GridTask(make_config("p_mo2g"), psi_kind="follow")
+    plan = _point_plan(goal=(9, 9), subgoal=(9, 9))
+    state = _state((5, 5), target=(9, 9), reference=(0, 1), reached=True)
+    assert not bool(GridTask(make_config("p_mo2g")).plan_refuted(state, plan))
+    assert not bool(path_ahead(state, plan)) and bool(task.plan_refuted(state, plan))
+    ahead = plan.at[5, 6, 0].set(1.0)
+    assert bool(path_ahead(state, ahead)) and not bool(task.plan_refuted(state, ahead))
+    # A marked neighbour already visited is not ahead.
+    behind = state.replace(visited=state.visited.at[5, 6].set(True))
+    assert not bool(path_ahead(behind, ahead)) and bool(task.plan_refuted(behind, ahead))

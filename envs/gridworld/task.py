@@ -140,7 +140,8 @@ def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True):
     on the grid and not known obstacles (nor the goal estimate's cell while the sub-goal is
     elsewhere), score float32 (4,) the path value of the candidates (-inf elsewhere): the
     marked (path > 0) unvisited neighbours, or the marked visited ones when there are none,
-    heading int32 (2,) the cell the plan heads for)."""
+    heading int32 (2,) the cell the plan heads for, ahead bool () some unvisited neighbour is
+    marked)."""
     h, w = state.grid.shape
     cells, inside = bfs.neighbours(state.agent, (h, w))
     r = jnp.clip(cells[:, 0], 0, h - 1)
@@ -156,14 +157,20 @@ def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True):
     marked = legal & (path > 0)
     fresh = marked & ~state.visited[r, c]
     use = jnp.where(fresh.any(), fresh, marked)
-    return cells, legal, jnp.where(use, path, -jnp.inf), heading
+    return cells, legal, jnp.where(use, path, -jnp.inf), heading, fresh.any()
 
 
 def unfollowable(state: env.State, plan, use_goal_channel: bool = True):
     """bool (): the plan marks no legal neighbour of the agent as path (psi_follow falls
     back)."""
-    _, _, score, _ = _follow_candidates(state, plan, use_goal_channel)
+    _, _, score, _, _ = _follow_candidates(state, plan, use_goal_channel)
     return ~jnp.any(jnp.isfinite(score))
+
+
+def path_ahead(state: env.State, plan, use_goal_channel: bool = True):
+    """bool (): the plan marks an unvisited legal neighbour as path (psi_follow has somewhere
+    new to go; without one it steps back onto visited cells)."""
+    return _follow_candidates(state, plan, use_goal_channel)[4]
 
 
 def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
@@ -171,7 +178,7 @@ def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
     most strongly as path (ties to the lowest move index N, E, S, W); where none is marked, the
     legal neighbour nearest (in moves, obstacles ignored) to the cell the plan heads for (move
     0 if no neighbour is legal). See the module docstring."""
-    cells, legal, score, heading = _follow_candidates(state, plan, use_goal_channel)
+    cells, legal, score, heading, _ = _follow_candidates(state, plan, use_goal_channel)
     follow = jnp.argmax(score)
     distance = jnp.abs(cells - heading[None, :]).sum(-1)
     greedy = jnp.argmin(jnp.where(legal, distance, jnp.iinfo(jnp.int32).max))
@@ -286,8 +293,13 @@ class GridTask:
 
     def plan_refuted(self, state: env.State, plan):
         """bool (): the plan's guess is disproved by what has been seen (the "on_refuted"
-        re-planning trigger; :func:`plan_refuted`)."""
-        return plan_refuted(state, plan, self.config.has_reference, self.use_goal_channel)
+        re-planning trigger; :func:`plan_refuted`); with psi_kind "follow" also where the
+        plan's path has no unvisited cell next to the agent (:func:`path_ahead`: a kept plan
+        would walk the agent back and forth over its own track)."""
+        refuted = plan_refuted(state, plan, self.config.has_reference, self.use_goal_channel)
+        if self.follows_plan:
+            refuted = refuted | ~path_ahead(state, plan, self.use_goal_channel)
+        return refuted
 
     def at_goal_estimate(self, state: env.State, plan):
         """bool (): the agent stands on the cell the plan heads for (with a sub-goal channel:
