@@ -50,6 +50,9 @@ computed and dropped). Measured on the XLA CPU backend of jax 0.6.2: the shipped
 for a row is bit-identical at every batch size >= 16 (and under any permutation), but differs
 by ~1e-6 below 16, which can flip a near-tied argmax of a plan. With sub-batches of >= 16 an
 episode's result does not depend on how many episodes are evaluated at once."""
+SAMPLE_STREAM = 0x5A3
+"""With ``samples`` = K > 1, a plan's draws use its key and ``fold_in(key, SAMPLE_STREAM + j)``
+for j = 1..K-1 (so the first draw is the plan a one-sample planner makes)."""
 RETRY_STREAM = 0x5E7
 """``retry_batch`` draws a move's second plan with ``fold_in(the move's plan key, RETRY_STREAM)``."""
 
@@ -95,6 +98,7 @@ class PlannerConfig:
     record_plans: bool = False
     fresh_noise: bool = True
     replan: str = "always"
+    samples: int = 1
 
     def __post_init__(self):
         def is_int(v):
@@ -105,7 +109,7 @@ class PlannerConfig:
         if self.replan not in REPLAN_TRIGGERS:
             raise ValueError(f"unknown replan trigger {self.replan!r}; expected one of "
                              f"{REPLAN_TRIGGERS}")
-        for name in ("num_steps", "k", "warm_start_step"):
+        for name in ("num_steps", "k", "warm_start_step", "samples"):
             if not is_int(getattr(self, name)):
                 raise ValueError(f"{name} must be an int, got {getattr(self, name)!r}")
         if self.warm_num_steps is not None and not is_int(self.warm_num_steps):
@@ -113,6 +117,8 @@ class PlannerConfig:
                              f"{self.warm_num_steps!r}")
         if self.num_steps < 1:
             raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
+        if self.samples < 1:
+            raise ValueError(f"samples must be >= 1, got {self.samples}")
         if self.k < 1:
             raise ValueError(f"k must be >= 1, got {self.k}")
         if self.warm_num_steps is not None and self.warm_num_steps < 1:
@@ -136,11 +142,11 @@ class PlannerConfig:
 
     @property
     def full_plan_calls(self) -> int:
-        return denoiser_calls(self.full_plan_steps, None)
+        return self.samples * denoiser_calls(self.full_plan_steps, None)
 
     @property
     def warm_plan_calls(self) -> int:
-        return denoiser_calls(self.warm_steps, self.warm_start_step)
+        return self.samples * denoiser_calls(self.warm_steps, self.warm_start_step)
 
     @property
     def warm_steps(self) -> int:
@@ -247,7 +253,8 @@ class Planner(struct.PyTreeNode):
                             move=zero, calls=zero, num_plans=zero, fallbacks=zero)
 
     def plan(self, state: PlannerState, condition: jax.Array,
-             replan: Optional[jax.Array] = None) -> tuple[jax.Array, PlannerState]:
+             replan: Optional[jax.Array] = None, rank: Optional[Callable] = None
+             ) -> tuple[jax.Array, PlannerState]:
         """One move's plan for one episode.
 
         Args:
@@ -256,6 +263,8 @@ class Planner(struct.PyTreeNode):
           replan: optional bool (): the caller's re-planning trigger (see the module
             docstring); None: the mode's default (re-plan every move in on_the_fly and
             warm_start, never in k_shot but for the first plan).
+          rank: with config.samples = K > 1 (required then): plans float32 (K, H, W, G) ->
+            float32 (K,) costs; the cheapest draw is kept.
         Returns:
           (plan float32 (H, W, G), the next PlannerState).
         Under vmap both the fresh and the warm branch of a warm_start plan are computed for
@@ -265,12 +274,13 @@ class Planner(struct.PyTreeNode):
         need, warm = self._decide(state, replan)
         mode = self.config.mode
         key = self._plan_key(state)
-        fresh = lambda: self._sample(key, condition, state.tokens, None)  # noqa: E731
+        score = rank if self._check_rank(rank) else None
+        fresh = lambda: self._draw(key, condition, state.tokens, None, score)  # noqa: E731
         hold = lambda: state.plan  # noqa: E731
         if mode == "on_the_fly" and replan is None:
             new = fresh()
         elif mode == "warm_start":
-            warm_fn = lambda: self._sample(key, condition, state.tokens, state.plan)  # noqa
+            warm_fn = lambda: self._draw(key, condition, state.tokens, state.plan, score)  # noqa
             branch = jnp.where(need, jnp.where(warm, 2, 1), 0)
             new = jax.lax.switch(branch, [hold, fresh, warm_fn])
         else:
@@ -281,8 +291,8 @@ class Planner(struct.PyTreeNode):
 
     def plan_batch(self, states: PlannerState, conditions: jax.Array,
                    active: Optional[jax.Array] = None, replan: Optional[jax.Array] = None,
-                   chunk: Optional[int] = None, fresh_chunk: Optional[int] = None
-                   ) -> tuple[jax.Array, PlannerState]:
+                   chunk: Optional[int] = None, fresh_chunk: Optional[int] = None,
+                   rank: Optional[Callable] = None) -> tuple[jax.Array, PlannerState]:
         """``jax.vmap(plan)`` over a batch of B episodes, computing plans only where needed.
 
         Args:
@@ -295,6 +305,8 @@ class Planner(struct.PyTreeNode):
             needy episodes only, ``chunk`` at a time (at least MIN_SUB_BATCH).
           fresh_chunk: the sub-batch of plans from noise in warm_start mode (default chunk;
             at least MIN_SUB_BATCH).
+          rank: with config.samples = K > 1 (required then): (i int32 (), plans float32
+            (K, H, W, G)) -> float32 (K,) costs of row i's draws; the cheapest is kept.
         Returns:
           (plans float32 (B, H, W, G), the next states).
         """
@@ -306,11 +318,8 @@ class Planner(struct.PyTreeNode):
         chunk = max(MIN_SUB_BATCH, b if chunk is None else int(chunk))
         fresh_chunk = chunk if fresh_chunk is None else max(MIN_SUB_BATCH, int(fresh_chunk))
         keys = jax.vmap(self._plan_key)(states)
-        fresh = self._fresh_rows(keys, conditions, states.tokens)
-
-        def warm_plans(idx):
-            return jax.vmap(self._sample)(keys[idx], conditions[idx], states.tokens[idx],
-                                          states.plan[idx])
+        fresh = self._fresh_rows(keys, conditions, states.tokens, rank)
+        warm_plans = self._rows(keys, conditions, states.tokens, rank, states.plan)
 
         plans = states.plan
         if self.config.mode == "warm_start":
@@ -321,7 +330,8 @@ class Planner(struct.PyTreeNode):
         return plans, jax.vmap(self._advance)(states, plans, conditions, need, warm, active)
 
     def retry_batch(self, states: PlannerState, conditions: jax.Array, need: jax.Array,
-                    chunk: Optional[int] = None) -> tuple[jax.Array, PlannerState]:
+                    chunk: Optional[int] = None, rank: Optional[Callable] = None
+                    ) -> tuple[jax.Array, PlannerState]:
         """A second plan of this move, from noise with a key of its own, for the episodes
         where ``need`` (bool (B,)); the others keep theirs. It costs a full plan's calls and
         counts as a plan, not as a move. Modes that plan once (one_shot, k_shot) never plan
@@ -334,7 +344,7 @@ class Planner(struct.PyTreeNode):
         need = jnp.asarray(need, bool)
         chunk = max(MIN_SUB_BATCH, need.shape[0] if chunk is None else int(chunk))
         keys = jax.vmap(lambda s: jax.random.fold_in(self._plan_key(s), RETRY_STREAM))(states)
-        plans = subset_update(need, self._fresh_rows(keys, conditions, states.tokens),
+        plans = subset_update(need, self._fresh_rows(keys, conditions, states.tokens, rank),
                               states.plan, chunk)
         n = need.astype(jnp.int32)
         return plans, states.replace(
@@ -346,10 +356,41 @@ class Planner(struct.PyTreeNode):
 
     # ------------------------------------------------------------------ internals
 
-    def _fresh_rows(self, keys, conditions, tokens):
+    def _fresh_rows(self, keys, conditions, tokens, rank=None):
         """idx -> plans from noise of those rows (subset_update's compute)."""
-        return lambda idx: jax.vmap(lambda k, c, t: self._sample(k, c, t, None))(
-            keys[idx], conditions[idx], tokens[idx])
+        return self._rows(keys, conditions, tokens, rank, None)
+
+    def _rows(self, keys, conditions, tokens, rank, previous):
+        """idx int32 (n,) -> plans (n, H, W, G) of those rows, from noise (previous None) or
+        warm from previous (B, H, W, G); rank: see plan_batch."""
+        self._check_rank(rank)
+
+        def row(i):
+            score = None if rank is None else (lambda plans: rank(i, plans))
+            prev = None if previous is None else previous[i]
+            return self._draw(keys[i], conditions[i], tokens[i], prev, score)
+
+        return jax.vmap(row)
+
+    def _check_rank(self, rank) -> bool:
+        """True if the config draws several plans (then rank must be given)."""
+        if self.config.samples == 1:
+            return False
+        if rank is None:
+            raise ValueError(f"samples={self.config.samples} draws several plans per re-plan; "
+                             f"pass rank (plan costs) to choose among them")
+        return True
+
+    def _draw(self, key, condition, tokens, previous, score):
+        """One plan (H, W, G): the single sample, or of config.samples draws the one with the
+        lowest score(plans (K, H, W, G)) -> (K,)."""
+        k = self.config.samples
+        if k == 1:
+            return self._sample(key, condition, tokens, previous)
+        keys = jnp.stack([key] + [jax.random.fold_in(key, SAMPLE_STREAM + j)
+                                  for j in range(1, k)])
+        plans = jax.vmap(lambda kk: self._sample(kk, condition, tokens, previous))(keys)
+        return plans[jnp.argmin(score(plans))]
 
     def _check_condition(self, condition, batched: bool):
         h, w, g = self.plan_shape

@@ -80,27 +80,42 @@ def move(task, planner: Planner, states, planner_states: PlannerState, active,
     replan = None
     if config.mode == "k_shot":
         replan = jax.vmap(task.at_goal_estimate)(states, planner_states.plan)
-    elif config.replan == "on_change" and config.mode != "one_shot":
-        replan = (jax.vmap(task.new_information)(planner_states.condition, conditions)
-                  | jax.vmap(task.at_goal_estimate)(states, planner_states.plan))
-    elif config.replan == "on_refuted" and config.mode != "one_shot":
-        if not callable(getattr(task, "plan_refuted", None)):
-            raise ValueError(f"replan='on_refuted' needs a task that says when a plan is "
-                             f"refuted (task.plan_refuted); {type(task).__name__} has none")
-        replan = (jax.vmap(task.plan_refuted)(states, planner_states.plan)
-                  | jax.vmap(task.at_goal_estimate)(states, planner_states.plan))
+    elif config.replan != "always" and config.mode != "one_shot":
+        if config.replan == "on_change":
+            stale = jax.vmap(task.new_information)(planner_states.condition, conditions)
+        else:  # on_refuted
+            if not callable(getattr(task, "plan_refuted", None)):
+                raise ValueError(f"replan='on_refuted' needs a task that says when a plan is "
+                                 f"refuted (task.plan_refuted); {type(task).__name__} has none")
+            stale = jax.vmap(task.plan_refuted)(states, planner_states.plan)
+        replan = stale | jax.vmap(task.at_goal_estimate)(states, planner_states.plan)
+    rank = _rank(task, config, states)
     plans, planner_states = planner.plan_batch(planner_states, conditions, active, replan,
-                                               chunk=chunk, fresh_chunk=fresh_chunk)
+                                               chunk=chunk, fresh_chunk=fresh_chunk, rank=rank)
     actions = jax.vmap(task.psi)(states, plans)
     if getattr(task, "follows_plan", False):
         stuck = jax.vmap(task.unfollowable)(states, plans) & active
-        plans, planner_states = planner.retry_batch(planner_states, conditions, stuck, chunk)
+        plans, planner_states = planner.retry_batch(planner_states, conditions, stuck, chunk,
+                                                    rank=rank)
         actions = jnp.where(stuck, jax.vmap(task.psi)(states, plans), actions)
         fallback = stuck & jax.vmap(task.unfollowable)(states, plans)
         planner_states = planner_states.replace(
             fallbacks=planner_states.fallbacks + fallback.astype(jnp.int32))
     states = _where_rows(active, jax.vmap(task.step)(states, actions), states)
     return states, planner_states, plans
+
+
+def _rank(task, config, states):
+    """Planner.plan_batch's ``rank`` for a planner that draws several plans per re-plan
+    (``config.samples`` > 1): row i's plans are scored by ``task.plan_cost(states[i], plan)``
+    and the cheapest is kept. None when one plan is drawn."""
+    if config.samples == 1:
+        return None
+    if not callable(getattr(task, "plan_cost", None)):
+        raise ValueError(f"samples={config.samples} needs a task that scores a plan "
+                         f"(task.plan_cost); {type(task).__name__} has none")
+    cost = jax.vmap(task.plan_cost, in_axes=(None, 0))
+    return lambda i, plans: cost(jax.tree.map(lambda x: x[i], states), plans)
 
 
 def _result(task, final_states, positions, planner_states: PlannerState, first_plan,

@@ -65,6 +65,12 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "the plan marks most strongly as path; where none is marked plan again "
                         "once, then step greedily toward the sub-goal; the table's fb%% column "
                         f"is the share of such fallback moves) (default {spec.psi})")
+    p.add_argument("--samples", type=int, default=spec.samples,
+                   help="plans drawn from different noise each time a plan is made; of "
+                        "several, the one heading for the cell nearest the agent (over cells "
+                        "not known to be obstacles) and not yet disproved is kept: the agent "
+                        "checks the nearest of several guesses of a hidden target first. Costs "
+                        f"that many times the denoiser calls (default {spec.samples})")
     p.add_argument("--language", choices=tuple(LANGUAGE_CHOICES), default="canonical",
                    help="instruction phrasing of the episodes: 'canonical' (the paper's, "
                         "default), 'paraphrased' (the training paraphrases), 'unseen' (held-out "
@@ -130,7 +136,7 @@ def check_args(parser, args, spec):
     if not 0 <= args.eta <= 10 or args.eta != args.eta:
         parser.error(f"--eta must be in [0, 10], got {args.eta}")
     for flag, value in (("--episodes", args.episodes), ("--batch-size", args.batch_size),
-                        ("--num-steps", args.num_steps)):
+                        ("--num-steps", args.num_steps), ("--samples", args.samples)):
         cli.check_at_least(parser, flag, value, 1)
     warm_steps = args.num_steps if args.warm_num_steps is None else args.warm_num_steps
     if warm_steps < 1:

@@ -84,6 +84,8 @@ class ExperimentSpec:
     # psi (envs.gridworld.task.PSI_KINDS): "search" (Dijkstra toward the sub-goal, the plan's
     # path cheaper) or "follow" (the paper's: the neighbour the plan marks most strongly).
     psi: str = "search"
+    # Plans drawn per re-plan, the nearest guess kept (PlannerConfig.samples).
+    samples: int = 1
 
     @property
     def name(self) -> str:
@@ -139,7 +141,7 @@ class ExperimentSpec:
                              warm_start_step=self.warm_start_step,
                              warm_num_steps=self.warm_num_steps,
                              fresh_noise=self.fresh_noise, eta=self.eta,
-                             replan=self.replan_of(mode), **overrides)
+                             replan=self.replan_of(mode), samples=self.samples, **overrides)
 
     @property
     def training_name(self) -> str:

@@ -10,13 +10,14 @@ settings, the Kuka world's tasks), each one jitted evaluation over all its episo
 A configuration holds the experiment CLIs' flags, with underscores, and names its task: "task"
 (a registry name, ``envs.names()``: gridworld/1o1g, gridworld/mo1g, gridworld/p_mo2g,
 gridworld/p_mo2g_far, kuka/stacking, kuka/rearrangement) or, for the grid world, "setting"
-(1o1g, mo1g, p_mo2g, p_mo2g_far; the default task is gridworld/p_mo2g). Every task: checkpoint, modes (one planning mode),
-num_steps, seed, episodes, batch_size. The grid world: eta, warm_start_step, warm_num_steps,
-noise ("fresh" | "episode"), replan ("always" | "on_change"; missing: the mode's own, as in the
-experiment CLIs: on_the_fly "always", warm_start "on_change"); batch_size is the slots per
-device of the re-planning modes' pool. The Kuka world: multi (true: the multi-constraint
-column), language ("canonical" | "paraphrased"), carry ("path" | "arc"); batch_size is the
-episodes per jitted call. ``--config FILE`` reads a JSON list of such objects (missing keys
+(1o1g, mo1g, p_mo2g, p_mo2g_far; the default task is gridworld/p_mo2g). Every task:
+checkpoint, modes (one planning mode), num_steps, seed, episodes, batch_size. The grid world:
+eta, warm_start_step, warm_num_steps, noise ("fresh" | "episode"), replan ("always" |
+"on_change" | "on_refuted"; missing: the mode's own, as in the experiment CLIs: on_the_fly
+"always", warm_start "on_change"), language, psi ("search" | "follow"), samples (plans drawn
+per re-plan); batch_size is the slots per device of the re-planning modes' pool. The Kuka
+world: multi (true: the multi-constraint column), language ("canonical" | "paraphrased" |
+"unseen"), carry ("path" | "arc"); batch_size is the episodes per jitted call. ``--config FILE`` reads a JSON list of such objects (missing keys
 take the experiment CLIs' defaults, listed below); on the command line, comma-separated values
 give every combination.
 

@@ -6,10 +6,11 @@ A configuration names its task by its registry name (``envs.names()``): "task":
 instead ("setting": "p_mo2g", as the shipped sweep files do); without either the task is
 gridworld/p_mo2g. The keys every task takes: task, checkpoint, modes (one planning mode),
 num_steps, seed, episodes, batch_size. The grid world's: setting, eta, warm_start_step,
-warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change" | "on_refuted"; missing: the
-mode's own, as in the experiment CLIs), language, psi ("search" | "follow", the CLIs' --psi).
-The Kuka world's: multi (several instructed
-relations: the multi-constraint column), language, carry ("path" | "arc"). language is the
+warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change" | "on_refuted";
+missing: the mode's own, as in the experiment CLIs), language, psi ("search" | "follow", the
+CLIs' --psi), samples (plans drawn per re-plan, the nearest guess kept: the CLIs' --samples).
+The Kuka world's: multi (several instructed relations: the multi-constraint column),
+language, carry ("path" | "arc"). language is the
 instructions' phrasing in both worlds: "canonical" | "paraphrased" | "unseen" (held-out
 phrasings training never saw).
 """
@@ -28,7 +29,8 @@ GRID_DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly",
                  "warm_start_step": _SPEC.warm_start_step,
                  "warm_num_steps": _SPEC.warm_num_steps or _SPEC.num_steps,
                  "noise": "fresh" if _SPEC.fresh_noise else "episode", "replan": None,
-                 "language": "canonical", "psi": _SPEC.psi, "seed": DEFAULT_EVAL_SEED,
+                 "language": "canonical", "psi": _SPEC.psi, "samples": _SPEC.samples,
+                 "seed": DEFAULT_EVAL_SEED,
                  "episodes": 1000, "batch_size": _SPEC.eval_batch}
 """The grid-world CLIs' defaults (replan None: the mode's own trigger, MODE_REPLAN)."""
 KUKA_DEFAULTS = {"checkpoint": None, "modes": ks.MAIN_MODE, "num_steps": ks.NUM_STEPS,
@@ -43,12 +45,12 @@ KEYS = ("task",) + tuple(dict.fromkeys(itertools.chain(GRID_DEFAULTS, KUKA_DEFAU
 TYPES = {"task": str, "setting": str, "checkpoint": str, "modes": str, "num_steps": int,
          "eta": float, "warm_start_step": int, "warm_num_steps": int, "noise": str,
          "replan": str, "seed": int, "episodes": int, "batch_size": int, "multi": bool,
-         "language": str, "carry": str, "psi": str}
+         "language": str, "carry": str, "psi": str, "samples": int}
 CHOICES = {"setting": tuple(gs.SPECS), "noise": ("fresh", "episode"),
            "replan": tuple(gs.TRIGGER_WORDS), "language": ks.LANGUAGES, "carry": ks.CARRIES,
            "psi": PSI_KINDS}
 MINIMUMS = {"episodes": 1, "batch_size": 1, "seed": 0, "num_steps": 1, "warm_num_steps": 1,
-            "warm_start_step": 0}
+            "warm_start_step": 0, "samples": 1}
 
 
 class SweepError(ValueError):
@@ -144,7 +146,7 @@ def spec_of(config: dict) -> gs.ExperimentSpec:
         gs.SPECS[config["setting"]], num_steps=config["num_steps"],
         warm_start_step=config["warm_start_step"], warm_num_steps=config["warm_num_steps"],
         fresh_noise=config["noise"] == "fresh", eta=config["eta"], replan=config["replan"],
-        language=config["language"], psi=config["psi"])
+        language=config["language"], psi=config["psi"], samples=config["samples"])
 
 
 def planner_config(config: dict):

@@ -8,6 +8,7 @@ import numpy as np
 
 CSV_FIELDS = ("task", "setting", "modes", "num_steps", "eta", "warm_num_steps",
               "warm_start_step", "noise", "replan", "multi", "language", "carry", "psi",
+              "samples",
               "seed", "episodes", "checkpoint", "SR", "SR_ordered", "SR_diffuser", "GD",
               "path_precision", "path_recall", "path_f1", "SPL", "fallback_percent",
               "settle_changed", "denoiser_calls_per_episode", "seconds", "compile_seconds",
@@ -45,11 +46,13 @@ def label(row) -> str:
                 + (" arc" if row["carry"] == "arc" else ""))
     extra = (f" {row['warm_num_steps']}/{row['warm_start_step']}" if row["modes"] ==
              "warm_start" else f" {row['num_steps']}")
-    return (f"{row['modes']}{extra}" + (f" {row['replan']}" if row["replan"] in ("on_change", "on_refuted") else "")
+    return (f"{row['modes']}{extra}"
+            + (f" {row['replan']}" if row["replan"] in ("on_change", "on_refuted") else "")
             + (f" eta{row['eta']:g}" if row["eta"] else "")
             + (f" {row['language']}" if row.get("language", "canonical") != "canonical"
                else "")
-            + (" follow" if row.get("psi") == "follow" else ""))
+            + (" follow" if row.get("psi") == "follow" else "")
+            + (f" best of {row['samples']}" if row.get("samples", 1) > 1 else ""))
 
 
 SECOND_PANELS = (("path_f1", "path F1 (%)"), ("SR_diffuser", "SR, Diffuser's check (%)"))

@@ -130,6 +130,23 @@ def plan_refuted(state: env.State, plan, has_reference: bool, use_goal_channel: 
     return wrong
 
 
+REFUTED_PLAN_COST = 1e4
+""":func:`plan_cost` of a plan already refuted (more than any path on a 16 x 16 grid)."""
+
+
+def plan_cost(state: env.State, plan, has_reference: bool, use_goal_channel: bool = True):
+    """float32 (): moves from the agent to the cell the plan heads for (:func:`goal_estimate`)
+    over cells not known to be obstacles (unseen cells count as free), plus REFUTED_PLAN_COST
+    if what has been seen already refutes the plan (:func:`plan_refuted`). Ranks several drawn
+    plans (``PlannerConfig.samples``): of several guesses of a hidden target, the nearest that
+    is still possible."""
+    passable = ~(state.seen & (state.grid == OBSTACLE_CELL))
+    heading = goal_estimate(state, plan, use_goal_channel)
+    moves = bfs.cost_to_go(passable, heading)[state.agent[0], state.agent[1]]
+    refuted = plan_refuted(state, plan, has_reference, use_goal_channel)
+    return moves.astype(jnp.float32) + REFUTED_PLAN_COST * refuted
+
+
 PSI_KINDS = ("search", "follow")
 """``GridTask.psi_kind``: Dijkstra toward the sub-goal over path-cheapened cells (:func:`psi`),
 or the paper's neighbour-following psi (:func:`psi_follow`)."""
@@ -300,6 +317,11 @@ class GridTask:
         if self.follows_plan:
             refuted = refuted | ~path_ahead(state, plan, self.use_goal_channel)
         return refuted
+
+    def plan_cost(self, state: env.State, plan):
+        """float32 (): how far the plan sends the agent, a refuted plan last (the ranking of
+        several drawn plans, ``PlannerConfig.samples``; :func:`plan_cost`)."""
+        return plan_cost(state, plan, self.config.has_reference, self.use_goal_channel)
 
     def at_goal_estimate(self, state: env.State, plan):
         """bool (): the agent stands on the cell the plan heads for (with a sub-goal channel:
