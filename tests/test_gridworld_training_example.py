@@ -164,3 +164,36 @@ def test_later_leg_value_marks_the_leg_after_the_reference(setting):
         assert later_legs > 0
     with pytest.raises(ValueError, match="later_leg_value"):
         make_batch_fn(config, later_leg_value=0.0)
+
+
+def test_searcher_route_examples_explore_past_the_reference():
+    """search_prob = 1 in P-MO2G-far: every example's agent stood on the reference and then
+    searched (some off the expert's walk); its targets are still a shortest path
+    from where it stands to the target, and the target as goal and sub-goal. Settings whose
+    target the reference shows are left as they are."""
+    from envs.gridworld.training import make_batch_fn
+
+    far, near = make_config("p_mo2g_far"), make_config("p_mo2g")
+    keys = jax.random.split(jax.random.PRNGKey(3), BATCH)
+    run = jax.jit(jax.vmap(lambda k: (training_example(k, far, 0.5, search_prob=1.0),
+                                      generate(jax.random.split(k, 5)[0], far),
+                                      training_example(k, near, 0.5, search_prob=1.0),
+                                      training_example(k, near, 0.5))))
+    (x, _, _), ep, near_search, near_plain = jax.device_get(run(keys))
+    np.testing.assert_array_equal(near_search[0], near_plain[0])
+    off_expert = past_reference = 0
+    for i in range(BATCH):
+        target, reference = tuple(ep.target[i]), tuple(ep.reference[i])
+        visited, agent = x[i, ..., 3] > 0, tuple(np.argwhere(x[i, ..., 2] > 0)[0])
+        assert visited[reference]
+        path = x[i, ..., PATH_CHANNEL] > 0
+        passable = ep.grid[i] != OBSTACLE_CELL
+        assert path.sum() - 1 == oracle_bfs(passable, target)[agent]
+        assert _connected(path, agent, target)
+        for channel in (GOAL_CHANNEL, SUBGOAL_CHANNEL):
+            assert np.argwhere(x[i, ..., channel] > 0).tolist() == [list(target)]
+        off_expert += bool(np.any(visited & ~ep.expert_path[i]))
+        past_reference += agent != reference
+    assert past_reference > BATCH // 2 and off_expert > 0
+    with pytest.raises(ValueError, match="search_prob"):
+        make_batch_fn(far, search_prob=1.5)

@@ -30,6 +30,12 @@ TRAINING_MIXTURE = (("p_mo2g", 36), ("mo1g", 18), ("1o1g", 10))
 """Examples of each setting per batch of 64 (one denoiser serves the three settings)."""
 EXAMPLE_KEYS = 5
 """An example's key splits into this many; the first generates its episode."""
+SEARCH_STREAM = 0x5EA
+"""The searcher-route draws of an example (:func:`training_example`, ``search_prob``) use
+``fold_in(example key, SEARCH_STREAM)``, so the other draws stay those of a recipe without."""
+MAX_SEARCH_MOVES = 16
+"""A searcher-route example stops after 0..MAX_SEARCH_MOVES of the searcher's moves past the
+reference (fewer if it reached the target)."""
 
 
 def state_along_expert(episode: Episode, config: GridConfig, index):
@@ -69,6 +75,23 @@ def _random_detour(key, state: env.State, config: GridConfig, num_moves, max_mov
     return state
 
 
+def _searcher_walk(state: env.State, tokens, config: GridConfig, num_moves,
+                   max_moves: int):
+    """The state after ``num_moves`` (int32 () <= max_moves, static) moves of the searcher
+    (``envs.gridworld.agents.searcher_move``: nothing learned, it sees what the agent sees) from
+    ``state``, stopping early where the episode ends."""
+    from envs.gridworld.agents import searcher_move
+
+    def move(s, i):
+        action = searcher_move(condition_from_observation(env.observe(s, config)), tokens)
+        moved = env.step(s, action, config)
+        go = (i < num_moves) & ~s.done
+        return jax.tree.map(lambda new, old: jnp.where(go, new, old), moved, s), None
+
+    state, _ = jax.lax.scan(move, state, jnp.arange(max_moves))
+    return state
+
+
 def _route_cells(positions, valid, reference, pending, size: int, later_leg_value: float):
     """float32 (H, W): the path channel's target of a route (positions int32 (P, 2), valid bool
     (P,) its entries): ``1`` on the cells up to its first visit of the reference (the whole
@@ -99,13 +122,18 @@ def _expert_from(state: env.State, episode: Episode, config: GridConfig,
 
 
 def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_detour: int = 8,
-                     later_leg_value: float = 1.0):
+                     later_leg_value: float = 1.0, search_prob: float = 0.0):
     """One supervised example: a state along an expert path and the plan from there.
 
     The agent is placed after a uniformly drawn number of expert moves (0..expert_length - 1)
     with the field of view accumulated along the way. With probability ``detour_prob`` it then
     takes 1..max_detour uniformly random moves (so the model also sees the states an imperfect
-    on-the-fly agent reaches). Targets of the generated channels (envs.gridworld.task):
+    on-the-fly agent reaches). With probability ``search_prob`` (settings whose target lies
+    beyond the reference's view only: P-MO2G-far) the agent instead walks the expert path to
+    the reference, then 0..MAX_SEARCH_MOVES moves of the searcher's exploration of the
+    instructed sector (``envs.gridworld.agents``): states an agent that searches reaches, with
+    parts of the sector seen and empty, which the expert's walk straight to the target never
+    shows. Targets of the generated channels (envs.gridworld.task):
       path      a shortest path from there (through the reference unless it was reached) to
                 the target, ends included (without a detour: the rest of the expert path):
                 +1 on its cells up to the reference (all of them once the reference was
@@ -123,9 +151,21 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
     episode = generate(k_episode, config)
     length = jnp.maximum(episode.expert_length, 1)
     index = jax.random.randint(k_index, (), 0, length)
+    search = search_prob > 0 and config.target_beyond_reference_view
+    if search:
+        k_search, k_search_moves = jax.random.split(jax.random.fold_in(key, SEARCH_STREAM))
+        searching = jax.random.bernoulli(k_search, search_prob)
+        at_reference = jnp.all(episode.expert_positions == episode.reference, axis=-1)
+        index = jnp.where(searching, jnp.argmax(at_reference), index)
     state = state_along_expert(episode, config, index)
-    if detour_prob > 0:
+    if search:
+        num_search = jax.random.randint(k_search_moves, (), 0, MAX_SEARCH_MOVES + 1)
+        state = _searcher_walk(state, episode.tokens, config,
+                               jnp.where(searching, num_search, 0), MAX_SEARCH_MOVES)
+    if detour_prob > 0 or search:
         detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done
+        if search:
+            detour = detour & ~searching
         num_moves = jnp.where(detour, jax.random.randint(k_moves, (), 1, max_detour + 1), 0)
         state = _random_detour(k_walk, state, config, num_moves, max_detour)
         path = _expert_from(state, episode, config, later_leg_value)
@@ -171,7 +211,8 @@ def near_agent(agent):
 def make_batch_fn(config: GridConfig, goal_channel: bool = True,
                   goal_loss_seen_only: bool = False, detour_prob: float = 0.0,
                   goal_loss_weight: float = 1.0, path_near_agent_weight: float = 0.0,
-                  later_leg_value: float = 1.0, role_loss_weight: float = 0.0):
+                  later_leg_value: float = 1.0, role_loss_weight: float = 0.0,
+                  search_prob: float = 0.0):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of examples of one setting.
 
     goal_channel=False trains without goal information (the paper's "- g" ablation: the goal
@@ -186,6 +227,9 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     for the whole route). role_loss_weight: 0, or the weight of an auxiliary loss
     (``diffplan.losses.token_loss``) asking the denoiser's token head which slot each slot word
     fills (:data:`ROLES`, ``diffplan.language.slot_roles``); it needs ``token_classes=3``.
+    search_prob: the share of examples placed along the searcher's exploration past the
+    reference (:func:`training_example`; used only where the target is hidden from the
+    reference, P-MO2G-far).
     """
     if not role_loss_weight >= 0:
         raise ValueError(f"role_loss_weight must be >= 0, got {role_loss_weight}")
@@ -197,6 +241,8 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         raise ValueError(f"goal_loss_weight must be > 0, got {goal_loss_weight}")
     if not 0 <= detour_prob <= 1:
         raise ValueError(f"detour_prob must be in [0, 1], got {detour_prob}")
+    if not 0 <= search_prob <= 1:
+        raise ValueError(f"search_prob must be in [0, 1], got {search_prob}")
     from diffplan.losses import with_token_labels
     from diffplan.train import Batch
 
@@ -205,7 +251,7 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     def batch_fn(key, batch_size):
         keys = training_episode_keys(key, batch_size)
         example = functools.partial(training_example, config=config, detour_prob=detour_prob,
-                                    later_leg_value=later_leg_value)
+                                    later_leg_value=later_leg_value, search_prob=search_prob)
         x0, tokens, seen = jax.vmap(example)(keys)
         ones = jnp.ones(x0.shape[:-1], jnp.float32)
         path = ones + path_near_agent_weight * jax.vmap(near_agent)(x0[..., AGENT_CHANNEL])
@@ -279,7 +325,8 @@ class Recipe:
     word_dropout: the probability that a training instruction's word other than an object name
     or direction is dropped (0: none; see :func:`make_mixture_batch_fn`). role_loss_weight: 0,
     or the weight of the auxiliary slot-role loss (:func:`make_batch_fn`; the denoiser needs
-    ``token_classes=3``).
+    ``token_classes=3``). search_prob: the share of P-MO2G-far examples placed along the
+    searcher's exploration of the instructed sector (:func:`training_example`).
     """
 
     mixture: tuple = TRAINING_MIXTURE
@@ -291,6 +338,7 @@ class Recipe:
     later_leg_value: float = 1.0
     word_dropout: float = 0.0
     role_loss_weight: float = 0.0
+    search_prob: float = 0.0
 
     def batch_fn(self):
         return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
@@ -299,7 +347,8 @@ class Recipe:
                                      goal_loss_weight=self.goal_loss_weight,
                                      path_near_agent_weight=self.path_near_agent_weight,
                                      later_leg_value=self.later_leg_value,
-                                     role_loss_weight=self.role_loss_weight)
+                                     role_loss_weight=self.role_loss_weight,
+                                     search_prob=self.search_prob)
 
     @property
     def batch_multiple(self) -> int:
@@ -325,7 +374,8 @@ class Recipe:
                    if self.later_leg_value != 1.0 else {}),
                 **({"word_dropout": self.word_dropout} if self.word_dropout else {}),
                 **({"role_loss_weight": self.role_loss_weight}
-                   if self.role_loss_weight else {})}
+                   if self.role_loss_weight else {}),
+                **({"search_prob": self.search_prob} if self.search_prob else {})}
 
 
 # ------------------------------------------------------------------ the episodes of a run
