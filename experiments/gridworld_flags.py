@@ -24,7 +24,9 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--trajectories", metavar="PATH.npz",
                    help="write the executed trajectories of the main row and the episodes "
                         "(of every seed, in order)")
-    cli.add_training_flags(p, training_name=TRAINING_NAME, served="all three settings",
+    served = ("all three paper settings" if spec.checkpoint_name == TRAINING_NAME
+              else f"{spec.setting} (and the paper settings it also trained on)")
+    cli.add_training_flags(p, training_name=spec.checkpoint_name, served=served,
                            train_steps=spec.train_steps, checkpoint_every=500,
                            model_sizes=MODEL_SIZES)
     p.add_argument("--prediction", choices=("eps", "x0"), default=None,

@@ -17,7 +17,7 @@ import json
 import os
 
 from experiments import gridworld_eval, kuka_eval
-from experiments.gridworld_spec import TRAINING_NAME
+from experiments.gridworld_spec import FAR_TRAINING_NAME, MODE_REPLAN, TRAINING_NAME
 from experiments.harness import CHECKPOINT_ROOT
 
 
@@ -39,6 +39,10 @@ WORLDS = {
                   "python -m experiments.compile_p_mo2g --train",
                   "The grid-world denoiser shipped with diffplan (one model for 1O1G, MO1G and "
                   "P-MO2G)."),
+    "gridworld_far": (os.path.join(CHECKPOINT_ROOT, FAR_TRAINING_NAME),
+                      "python -m experiments.compile_p_mo2g_far --train",
+                      "The P-MO2G-far denoiser shipped with diffplan (trained on P-MO2G-far "
+                      "beside the paper's three settings; compile_p_mo2g_far evaluates it)."),
     "kuka": (os.path.join(CHECKPOINT_ROOT, "kuka"),
              "python -m experiments.kuka_stacking --train",
              "The Kuka block-world denoiser shipped with diffplan (one model for stacking and "
@@ -59,6 +63,14 @@ def _result_command(result) -> str:
                  else f"--seed {seeds[0]}")
     extra = f" --language {result['language']}" if result.get("language") not in (
         None, "canonical") else ""
+    triggers = set((result.get("replan") or {}).items())
+    if triggers and not triggers <= set(MODE_REPLAN.items()) and len(
+            {t for _, t in triggers}) == 1:
+        extra += f" --replan {triggers.pop()[1]}"
+    if result.get("psi", "search") != "search":
+        extra += f" --psi {result['psi']}"
+    if result.get("samples", 1) > 1:
+        extra += f" --samples {result['samples']}"
     return (f"python -m experiments.{result['experiment']} --episodes {result['episodes']} "
             f"{seed_flag}{extra}")
 
@@ -104,7 +116,8 @@ def main(argv=None):
                    help="which world's denoiser the run trained (sets the defaults of --out "
                         "and --command and NOTE.md's description; default gridworld)")
     p.add_argument("--out", default=None,
-                   help="destination (default checkpoints/compile_gridworld, or "
+                   help="destination (default checkpoints/compile_gridworld, "
+                        "checkpoints/compile_gridworld_far with --world gridworld_far, or "
                         "checkpoints/kuka with --world kuka)")
     p.add_argument("--results", action="append", default=[], metavar="JSON",
                    help="experiment results (contract 2) to record in NOTE.md; repeatable")

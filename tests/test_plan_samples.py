@@ -140,3 +140,21 @@ def test_grid_plan_cost_is_the_walk_to_the_heading_cell():
     assert float(plan_cost(state, wrong, True)) == 7.0 + REFUTED_PLAN_COST
     assert float(GridTask(make_config("p_mo2g")).plan_cost(state, wrong)) == \
         7.0 + REFUTED_PLAN_COST
+
+
+def test_a_follow_task_ranks_a_path_that_leads_there_first():
+    """With the follow psi a plan whose path cells do not connect the agent to where the plan
+    heads costs REFUTED_PLAN_COST more: psi could not follow it there."""
+    from envs.gridworld.task import path_leads_to_heading
+
+    follow = GridTask(make_config("p_mo2g"), psi_kind="follow")
+    state = _state((5, 5), target=(5, 9), reference=(0, 1), reached=True)
+    bare = _point_plan(goal=(5, 9), subgoal=(5, 9))
+    led = bare.at[5, 5:10, 0].set(1.0)
+    broken = led.at[5, 7, 0].set(-1.0)
+    assert bool(path_leads_to_heading(state, led))
+    assert not bool(path_leads_to_heading(state, broken))
+    assert not bool(path_leads_to_heading(state, bare))
+    assert float(follow.plan_cost(state, led)) == 4.0
+    assert float(follow.plan_cost(state, broken)) == 4.0 + REFUTED_PLAN_COST
+    assert float(GridTask(make_config("p_mo2g")).plan_cost(state, broken)) == 4.0

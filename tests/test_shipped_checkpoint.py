@@ -18,13 +18,17 @@ MIN_SR = 100.0 * 63 / 64
 """At most one of the 64 episodes may fail (measured: none, in both modes)."""
 
 
+def load_shipped(checkpoint: str, setting: str):
+    """(spec, denoiser, metadata) of a shipped checkpoint; fails the test if it is missing."""
+    if not os.path.isdir(checkpoint):
+        pytest.fail(f"the shipped checkpoint {checkpoint} is missing")
+    denoiser, metadata = harness.load_model(checkpoint)
+    return SPECS[setting], denoiser, metadata
+
+
 @pytest.fixture(scope="module")
 def shipped():
-    if not os.path.isdir(CHECKPOINT):
-        pytest.fail(f"the shipped checkpoint {CHECKPOINT} is missing")
-    spec = SPECS["p_mo2g"]
-    denoiser, metadata = harness.load_model(CHECKPOINT)
-    return spec, denoiser, metadata
+    return load_shipped(CHECKPOINT, "p_mo2g")
 
 
 def test_checkpoint_has_a_note_with_its_provenance():

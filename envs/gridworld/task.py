@@ -190,6 +190,16 @@ def path_ahead(state: env.State, plan, use_goal_channel: bool = True):
     return _follow_candidates(state, plan, use_goal_channel)[4]
 
 
+def path_leads_to_heading(state: env.State, plan, use_goal_channel: bool = True):
+    """bool (): the plan's path cells (value > 0, not known obstacles) connect the agent's cell
+    to the cell the plan heads for (4-neighbours): following the marks can get it there."""
+    known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+    on_path = (plan[..., 0] > 0) & ~known_obstacle
+    heading = goal_estimate(state, plan, use_goal_channel)
+    on_path = on_path | env._cell_mask(state.agent, plan.shape[1])
+    return bfs.bfs_distance(on_path, state.agent)[heading[0], heading[1]] >= 0
+
+
 def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
     """The paper's psi: the move (int32 () in 0..3) onto the legal neighbour the plan marks
     most strongly as path (ties to the lowest move index N, E, S, W); where none is marked, the
@@ -320,8 +330,14 @@ class GridTask:
 
     def plan_cost(self, state: env.State, plan):
         """float32 (): how far the plan sends the agent, a refuted plan last (the ranking of
-        several drawn plans, ``PlannerConfig.samples``; :func:`plan_cost`)."""
-        return plan_cost(state, plan, self.config.has_reference, self.use_goal_channel)
+        several drawn plans, ``PlannerConfig.samples``; :func:`plan_cost`); with psi_kind
+        "follow" a plan whose path does not lead from the agent to where it heads
+        (:func:`path_leads_to_heading`) also costs REFUTED_PLAN_COST more."""
+        cost = plan_cost(state, plan, self.config.has_reference, self.use_goal_channel)
+        if self.follows_plan:
+            cost = cost + REFUTED_PLAN_COST * ~path_leads_to_heading(state, plan,
+                                                                     self.use_goal_channel)
+        return cost
 
     def at_goal_estimate(self, state: env.State, plan):
         """bool (): the agent stands on the cell the plan heads for (with a sub-goal channel:

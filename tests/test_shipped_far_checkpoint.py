@@ -1,0 +1,56 @@
+"""The shipped P-MO2G-far checkpoint still loads and still performs: on 64 fresh P-MO2G-far
+episodes (seed 4242, used for no choice), warm start re-planning only when refuted, SR and
+SR_ordered at most one episode below what was measured when shipped and SPL at most 0.03 below,
+on the executed trajectories; its NOTE.md records how it was made."""
+import dataclasses
+import os
+
+import pytest
+
+from envs.gridworld.metrics import trajectory_metrics
+from experiments import gridworld_eval as ge, harness
+from experiments.gridworld_spec import FAR_TRAINING_NAME, SPECS
+from test_shipped_checkpoint import load_shipped
+
+CHECKPOINT = os.path.join(harness.CHECKPOINT_ROOT, FAR_TRAINING_NAME)
+MEASURED = {"SR": 100.0 * 63 / 64, "SR_ordered": 100.0 * 63 / 64, "SPL": 0.920}
+"""What the shipped model scored on these 64 episodes (warm start, on_refuted)."""
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return load_shipped(CHECKPOINT, "p_mo2g_far")
+
+
+def test_it_is_the_far_settings_default_and_has_its_note(shipped):
+    spec = shipped[0]
+    assert spec.default_checkpoint() == CHECKPOINT
+    assert SPECS["p_mo2g"].default_checkpoint() != CHECKPOINT
+    note = open(os.path.join(CHECKPOINT, "NOTE.md")).read()
+    for needle in ("compile_p_mo2g_far --train", "seed", "SPL", "p_mo2g_far"):
+        assert needle in note
+
+
+def test_its_config_is_the_far_recipe(shipped):
+    spec, denoiser, metadata = shipped
+    assert denoiser.model_config == spec.model_config("default")
+    assert metadata["extra"] == {**spec.recipe().metadata(), "model_size": "default"}
+    train_config = {**spec.train_config().to_dict()}
+    assert {k: metadata["train_config"][k] for k in train_config
+            if k not in ("checkpoint_every", "log_every", "max_log_every")} == \
+        {k: v for k, v in train_config.items()
+         if k not in ("checkpoint_every", "log_every", "max_log_every")}
+
+
+def test_warm_start_on_refuted_on_64_far_episodes(shipped):
+    spec, denoiser, _ = shipped
+    spec = dataclasses.replace(spec, replan="on_refuted")
+    episodes = ge.eval_episodes(spec.grid_config(), 64, seed=4242)
+    rollout, _ = ge.evaluate_mode(spec, spec.task(denoiser.num_gen_channels), denoiser,
+                                  episodes, 4242, "warm_start", 64, progress=False)
+    m = trajectory_metrics(rollout.positions, rollout.steps, episodes.target,
+                           episodes.expert_path, episodes.reference,
+                           expert_length=episodes.expert_length)
+    assert m["SR"] >= MEASURED["SR"] - 100 / 64 and \
+        m["SR_ordered"] >= MEASURED["SR_ordered"] - 100 / 64, m
+    assert m["SPL"] >= MEASURED["SPL"] - 0.03, m
