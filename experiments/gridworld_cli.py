@@ -85,6 +85,25 @@ def _print_summary(spec, args, seeds, result) -> None:
         print(ge.format_intervals(result["rows"], seeds))
 
 
+def _posterior_rows(spec, task, modes, episodes_by_seed, args, progress) -> list[dict]:
+    """--posterior-denoiser: each mode planned with envs.gridworld.posterior's denoiser (no
+    learning, exact guesses) on every episode, rows named "<mode>, exact posterior"."""
+    from envs.gridworld.posterior import posterior_denoiser
+
+    denoiser = posterior_denoiser(spec.grid_config())
+    has_reference = spec.grid_config().has_reference
+    rows = []
+    for mode in modes:
+        outs = {seed: ge.evaluate_mode(spec, task, denoiser, eps, seed, mode, args.batch_size,
+                                       progress)
+                for seed, eps in episodes_by_seed.items()}
+        name = method_name(f"{METHOD_NAMES[mode]}, exact posterior", spec.language)
+        row, _ = ge.pooled_row(name, outs, episodes_by_seed, has_reference)
+        row["language"] = spec.language
+        rows.append(row)
+    return rows
+
+
 def _policy_rows(setting, seeds, args, progress, episodes_by_seed, language) -> list[dict]:
     """The rows of --baselines and, unless --no-reference-agents, of the reference agents on
     the episodes of one phrasing, their methods naming it."""
@@ -151,6 +170,8 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                                                           per_seed, has_reference)
             row["language"] = language
             rows.append(row)
+        if args.posterior_denoiser:
+            rows += _posterior_rows(lspec, task, modes, all_episodes, args, progress)
         rows += _policy_rows(setting, seeds, args, progress, all_episodes, language)
 
     language = languages[0]

@@ -94,6 +94,14 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "comma-separated of bc,cql,dd; the flag alone: all three), measured on "
                         "the same episodes and seeds as the planner's rows")
     add_reference_agents_flag(p)
+    p.add_argument("--posterior-denoiser", action="store_true",
+                   help="add a row per planning mode planned with a denoiser that needs no "
+                        "learning and guesses the hidden target exactly: each plan heads for "
+                        "the reference, then for the target once seen, else for a cell drawn "
+                        "uniformly among those the episode generator could have put it in "
+                        "(envs/gridworld/posterior.py); the same planner, psi and triggers, "
+                        "on every episode: what perfect inference would score (search psi "
+                        "only)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return p
 
@@ -150,6 +158,8 @@ def check_args(parser, args, spec):
     if bad or not modes:
         parser.error(f"unknown --modes {bad}; choose from {MODES}")
     args.baselines = check_baselines(parser, args.baselines)
+    if args.posterior_denoiser and args.psi != "search":
+        parser.error("--posterior-denoiser plans no path, so it serves --psi search only")
     return modes
 
 

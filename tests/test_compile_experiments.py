@@ -84,7 +84,8 @@ def test_trajectories_file_recomputes_the_main_row(tiny_run):
 def test_p_mo2g_far_runs_from_its_entry_point(tiny_run, tmp_path, monkeypatch):
     """`python -m experiments.compile_p_mo2g_far` evaluates a checkpoint of the paper's settings
     on the far setting: the ordered success in its row, trajectories of far episodes (the
-    target 4-9 cells from the reference, unseen at t=0)."""
+    target 4-9 cells from the reference, unseen at t=0), re-planning when refuted with the best
+    of 2 plans, and the exact-posterior denoiser's row (it solves the 4 episodes)."""
     import runpy
     import sys
 
@@ -92,12 +93,16 @@ def test_p_mo2g_far_runs_from_its_entry_point(tiny_run, tmp_path, monkeypatch):
     monkeypatch.setattr(sys, "argv", [
         "compile_p_mo2g_far", "--checkpoint", str(out / "train"), "--episodes", "4",
         "--batch-size", "4", "--num-steps", "2", "--modes", "on_the_fly", "--json",
-        str(tmp_path / "r.json"), "--trajectories", str(tmp_path / "t.npz"), "--no-progress"])
+        str(tmp_path / "r.json"), "--trajectories", str(tmp_path / "t.npz"), "--no-progress",
+        "--replan", "on_refuted", "--samples", "2", "--posterior-denoiser"])
     runpy.run_module("experiments.compile_p_mo2g_far", run_name="__main__")
     result = json.loads((tmp_path / "r.json").read_text())
     assert (result["experiment"], result["setting"]) == ("compile_p_mo2g_far", "p_mo2g_far")
-    assert [r["method"] for r in result["rows"]] == ["on-the-fly", "oracle", "searcher"]
-    assert result["rows"][1]["SR_ordered"] == 100.0 and result["rows"][1]["SPL"] == 1.0
+    assert [r["method"] for r in result["rows"]] == [
+        "on-the-fly", "on-the-fly, exact posterior", "oracle", "searcher"]
+    assert result["samples"] == 2 and result["replan"] == {"on_the_fly": "on_refuted"}
+    assert result["rows"][1]["SR_ordered"] == 100.0
+    assert result["rows"][2]["SR_ordered"] == 100.0 and result["rows"][2]["SPL"] == 1.0
     assert "SR_ordered" in result["rows"][0]
     traj = np.load(tmp_path / "t.npz")
     check_trajectories(traj, result, 4)
