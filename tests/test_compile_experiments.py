@@ -232,6 +232,8 @@ BAD_INVOCATIONS = [
     (["--checkpoint", "{tmp}/ckpt_file"], "no checkpoint in"),
     (["--baselines", "bc,ppo"], "--baselines must be distinct names"),
     (["--baselines", "bc,bc"], "--baselines must be distinct names"),
+    (["--samples", "0"], "--samples"),
+    (["--posterior-denoiser", "--psi", "follow"], "--psi search only"),
 ]
 
 
