@@ -15,7 +15,7 @@ checkpoint, modes (one planning mode), num_steps, seed, episodes, batch_size. Th
 eta, warm_start_step, warm_num_steps, noise ("fresh" | "episode"), replan ("always" |
 "on_change" | "on_refuted"; missing: the mode's own, as in the experiment CLIs: on_the_fly
 "always", warm_start "on_change"), language, psi ("search" | "follow"), samples (plans drawn
-per re-plan); batch_size is the slots per device of the re-planning modes' pool. The Kuka
+per re-plan), denoiser ("learned" | "posterior": no checkpoint, exact guesses); batch_size is the slots per device of the re-planning modes' pool. The Kuka
 world: multi (true: the multi-constraint column), language ("canonical" | "paraphrased" |
 "unseen"), carry ("path" | "arc"); batch_size is the episodes per jitted call. ``--config FILE`` reads a JSON list of such objects (missing keys
 take the experiment CLIs' defaults, listed below); on the command line, comma-separated values

@@ -8,7 +8,9 @@ gridworld/p_mo2g. The keys every task takes: task, checkpoint, modes (one planni
 num_steps, seed, episodes, batch_size. The grid world's: setting, eta, warm_start_step,
 warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change" | "on_refuted";
 missing: the mode's own, as in the experiment CLIs), language, psi ("search" | "follow", the
-CLIs' --psi), samples (plans drawn per re-plan, the nearest guess kept: the CLIs' --samples).
+CLIs' --psi), samples (plans drawn per re-plan, the nearest guess kept: the CLIs' --samples),
+denoiser ("learned": the checkpoint's; "posterior": envs.gridworld.posterior's, which learns
+nothing and guesses the hidden target exactly, the CLIs' --posterior-denoiser rows).
 The Kuka world's: multi (several instructed relations: the multi-constraint column),
 language, carry ("path" | "arc"). language is the
 instructions' phrasing in both worlds: "canonical" | "paraphrased" | "unseen" (held-out
@@ -30,6 +32,7 @@ GRID_DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly",
                  "warm_num_steps": _SPEC.warm_num_steps or _SPEC.num_steps,
                  "noise": "fresh" if _SPEC.fresh_noise else "episode", "replan": None,
                  "language": "canonical", "psi": _SPEC.psi, "samples": _SPEC.samples,
+                 "denoiser": "learned",
                  "seed": DEFAULT_EVAL_SEED,
                  "episodes": 1000, "batch_size": _SPEC.eval_batch}
 """The grid-world CLIs' defaults (replan None: the mode's own trigger, MODE_REPLAN)."""
@@ -45,10 +48,10 @@ KEYS = ("task",) + tuple(dict.fromkeys(itertools.chain(GRID_DEFAULTS, KUKA_DEFAU
 TYPES = {"task": str, "setting": str, "checkpoint": str, "modes": str, "num_steps": int,
          "eta": float, "warm_start_step": int, "warm_num_steps": int, "noise": str,
          "replan": str, "seed": int, "episodes": int, "batch_size": int, "multi": bool,
-         "language": str, "carry": str, "psi": str, "samples": int}
+         "language": str, "carry": str, "psi": str, "samples": int, "denoiser": str}
 CHOICES = {"setting": tuple(gs.SPECS), "noise": ("fresh", "episode"),
            "replan": tuple(gs.TRIGGER_WORDS), "language": ks.LANGUAGES, "carry": ks.CARRIES,
-           "psi": PSI_KINDS}
+           "psi": PSI_KINDS, "denoiser": ("learned", "posterior")}
 MINIMUMS = {"episodes": 1, "batch_size": 1, "seed": 0, "num_steps": 1, "warm_num_steps": 1,
             "warm_start_step": 0, "samples": 1}
 
@@ -133,6 +136,9 @@ def normalise(raw: dict, index: int) -> dict:
         config["replan"] = gs.SPECS[config["setting"]].replan_of(config["modes"])
     if not 0 <= config["eta"] <= 10:
         raise SweepError(f"configuration {index}: eta must be in [0, 10], got {config['eta']}")
+    if config["denoiser"] == "posterior" and (config["psi"] != "search" or config["checkpoint"]):
+        raise SweepError(f"configuration {index}: the posterior denoiser plans no path and "
+                         f"loads no checkpoint: it takes psi 'search' and no checkpoint")
     try:
         planner_config(config)
     except ValueError as e:

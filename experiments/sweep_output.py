@@ -8,7 +8,7 @@ import numpy as np
 
 CSV_FIELDS = ("task", "setting", "modes", "num_steps", "eta", "warm_num_steps",
               "warm_start_step", "noise", "replan", "multi", "language", "carry", "psi",
-              "samples",
+              "samples", "denoiser",
               "seed", "episodes", "checkpoint", "SR", "SR_ordered", "SR_diffuser", "GD",
               "path_precision", "path_recall", "path_f1", "SPL", "fallback_percent",
               "settle_changed", "denoiser_calls_per_episode", "seconds", "compile_seconds",
@@ -52,7 +52,8 @@ def label(row) -> str:
             + (f" {row['language']}" if row.get("language", "canonical") != "canonical"
                else "")
             + (" follow" if row.get("psi") == "follow" else "")
-            + (f" best of {row['samples']}" if row.get("samples", 1) > 1 else ""))
+            + (f" best of {row['samples']}" if row.get("samples", 1) > 1 else "")
+            + (" posterior" if row.get("denoiser") == "posterior" else ""))
 
 
 SECOND_PANELS = (("path_f1", "path F1 (%)"), ("SR_diffuser", "SR, Diffuser's check (%)"))

@@ -25,6 +25,14 @@ from experiments.sweep_config import (SweepError, default_checkpoint, planner_co
 from experiments.sweep_output import label
 
 
+def _checkpoint(config: dict):
+    """The checkpoint a configuration plans with (None: the posterior denoiser, no checkpoint;
+    it trained on no episode)."""
+    if config.get("denoiser") == "posterior":
+        return None
+    return config["checkpoint"] or default_checkpoint(config)
+
+
 class Runner:
     """Runs configurations, keeping compiled evaluations for reuse."""
 
@@ -39,6 +47,12 @@ class Runner:
 
     def denoiser(self, config: dict, index: int):
         """The configuration's denoiser, checked against its world and step counts."""
+        if config.get("denoiser") == "posterior":
+            from envs.gridworld.posterior import posterior_denoiser
+            key = ("posterior", config["task"])
+            if key not in self._denoisers:
+                self._denoisers[key] = posterior_denoiser(spec_of(config).grid_config())
+            return self._denoisers[key]
         checkpoint = config["checkpoint"] or default_checkpoint(config)
         if checkpoint not in self._denoisers:
             from diffplan.checkpoint import CorruptCheckpointError
@@ -82,11 +96,11 @@ class Runner:
         run = self._run_kuka if world(config) == "kuka" else self._run_grid
         row, compile_seconds, seconds = run(config, index, trajectories and os.path.join(
             trajectories, f"config_{index:03d}.npz"))
-        checkpoint = config["checkpoint"] or default_checkpoint(config)
+        checkpoint = _checkpoint(config)
         row.update(compile_seconds=compile_seconds, wall_seconds=seconds + compile_seconds,
                    devices=self.devices if world(config) == "gridworld" else 1,
                    **{k: v for k, v in config.items() if k != "checkpoint"},
-                   checkpoint=os.path.relpath(checkpoint, harness.REPO_ROOT))
+                   checkpoint=checkpoint and os.path.relpath(checkpoint, harness.REPO_ROOT))
         return row
 
     def _episodes_of(self, key, make):
@@ -142,9 +156,10 @@ class Runner:
             bar.update(n - bar.n)
             bar.close()
         out = jax.tree.map(lambda x: np.asarray(x)[:n], out)
-        checkpoint = config["checkpoint"] or default_checkpoint(config)
-        keep = ~self._cached(("overlap", checkpoint, config["task"], n, seed),
-                             lambda: ge.training_overlap(checkpoint, spec.setting, episodes))[0]
+        checkpoint = _checkpoint(config)
+        keep = np.ones(n, bool) if checkpoint is None else ~self._cached(
+            ("overlap", checkpoint, config["task"], n, seed),
+            lambda: ge.training_overlap(checkpoint, spec.setting, episodes))[0]
         out, episodes = ge.select(out, keep), ge.select(episodes, keep)
         if trajectories:
             ge.write_trajectories(trajectories, out, episodes, spec.grid_config())

@@ -76,6 +76,10 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     ({"task": "kuka/stacking", "num_steps": 500}, "exceeds its schedule"),
     ({"setting": "p_mo2g", "psi": "teleport"}, "psi must be one of"),
     ({"task": "kuka/stacking", "psi": "follow"}, "do not apply to kuka/stacking"),
+    ({"setting": "p_mo2g_far", "samples": 0}, "samples must be >= 1"),
+    ({"setting": "p_mo2g_far", "denoiser": "posterior", "psi": "follow"}, "posterior denoiser"),
+    ({"setting": "p_mo2g_far", "denoiser": "posterior", "checkpoint": "x"}, "no checkpoint"),
+    ({"setting": "p_mo2g_far", "denoiser": "oracle"}, "denoiser must be one of"),
 ])
 def test_bad_configurations_are_refused_in_one_line(tmp_path, capsys, config, message):
     path = tmp_path / "bad.json"
@@ -275,3 +279,20 @@ def test_psi_is_a_grid_sweep_key(tiny_checkpoint, tmp_path):
     assert 0 <= follow["SPL"] <= 1
     header = (tmp_path / "s.csv").read_text().splitlines()[0].split(",")
     assert {"psi", "SPL", "fallback_percent"} <= set(header)
+
+
+def test_the_posterior_denoiser_and_samples_are_grid_sweep_keys(tmp_path):
+    """denoiser "posterior" plans with envs.gridworld.posterior (no checkpoint) and samples
+    draws several plans: both rows solve the far episodes, the best of 2 at twice the calls of
+    a plan, and the CSV names both keys."""
+    result = sweep.main(["--setting", "p_mo2g_far", "--denoiser", "posterior", "--modes",
+                         "on_the_fly", "--replan", "on_refuted", "--samples", "1,2",
+                         "--num-steps", "2", "--episodes", "6", "--batch-size", "6", "--seed",
+                         "5", "--csv", str(tmp_path / "s.csv"), "--no-progress"])
+    one, two = result["rows"]
+    assert (one["samples"], two["samples"]) == (1, 2)
+    for row in (one, two):
+        assert row["denoiser"] == "posterior" and row["checkpoint"] is None
+        assert row["SR"] == row["SR_ordered"] == 100.0
+    header = (tmp_path / "s.csv").read_text().splitlines()[0].split(",")
+    assert {"samples", "denoiser"} <= set(header)
