@@ -11,7 +11,7 @@ and are measured by the same metrics, on the same episodes (:data:`REFERENCE_POL
   the target's cell, which would end the episode out of order.
 - **searcher** is honest: it sees what every policy sees, the condition channels (cells seen,
   obstacles seen, the agent, the cells visited) and the instruction's slots
-  (``baselines.instruction_slots``: reference, target and compass direction in any phrasing).
+  (``slots.instruction_slots``: reference, target and compass direction in any phrasing).
   Each move it picks goal cells and takes the first move of a shortest path to the nearest of
   them over the cells not known to be obstacles (unseen cells assumed free, re-planned as they
   are seen):
@@ -42,7 +42,7 @@ import jax.numpy as jnp
 
 from diffplan.baselines.policies import LoadedPolicy
 from envs.gridworld import bfs, env, grammar
-from envs.gridworld.baselines import instruction_slots
+from envs.gridworld.slots import instruction_slots
 from envs.gridworld.episode import OBSTACLE_CELL, compass_sector
 from envs.gridworld.task import AGENT_CHANNEL, _argmax_cell
 

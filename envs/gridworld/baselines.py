@@ -39,40 +39,16 @@ from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import GridConfig, make_config
 from envs.gridworld.episode import OBSTACLE_CELL, generate
 from envs.gridworld.task import AGENT_CHANNEL, NUM_COND_CHANNELS, condition_from_observation
+from envs.gridworld.slots import NUM_CLASSES, instruction_slots
 from envs.gridworld.training import (TRAINING_MIXTURE, state_along_expert,
                                      training_episode_keys)
 
-NUM_CLASSES = len(grammar.OBJECT_NAMES)
 NUM_DIRECTIONS = len(grammar.DIRECTIONS)
 GOAL_DIM = 2 * NUM_CLASSES + NUM_DIRECTIONS
 NUM_ACTIONS = 4
 AGENT_VALUE = 1.0
 MAX_CELL_ID = grammar.OBJECT_TOKEN_OFFSET + NUM_CLASSES - 1
 PLAN_THRESHOLD = 0.5
-
-
-def _heuristic_slots(tokens):
-    """(ref, target, dir) token ids int32 () of one instruction none of the grammar's phrasings
-    matches: the target is the last object word, the reference the first when there are two,
-    the direction the first direction word (0 where absent)."""
-    length = tokens.shape[-1]
-    cls = tokens - grammar.OBJECT_TOKEN_OFFSET
-    is_object = (cls >= 0) & (cls < NUM_CLASSES)
-    pos = jnp.arange(length)
-    last = jnp.argmax(jnp.where(is_object, pos, -1))
-    first = jnp.argmax(jnp.where(is_object, length - pos, -1))
-    count = jnp.sum(is_object)
-    is_dir = jnp.any(tokens[:, None] == jnp.asarray(grammar.DIRECTION_TOKEN_IDS), axis=-1)
-    return (jnp.where(count >= 2, tokens[first], 0), jnp.where(count >= 1, tokens[last], 0),
-            jnp.where(jnp.any(is_dir), tokens[jnp.argmax(is_dir)], 0))
-
-
-def instruction_slots(tokens):
-    """(ref, target, dir) token ids int32 () of one instruction int32 (L,): the words in the
-    slots of whichever of the grammar's phrasings it is (``grammar.parse``), else those of
-    :func:`_heuristic_slots`; 0 where the instruction has no such slot."""
-    matched, *slots = grammar.parse(tokens)
-    return tuple(jnp.where(matched, a, b) for a, b in zip(slots, _heuristic_slots(tokens)))
 
 
 def _goal_vector_one(tokens):

@@ -24,7 +24,7 @@ from diffplan.denoiser import LoadedDenoiser
 from diffplan.schedule import cosine_schedule
 from envs.gridworld import grammar
 from envs.gridworld.agents import sector_mask
-from envs.gridworld.baselines import instruction_slots
+from envs.gridworld.slots import instruction_slots
 from envs.gridworld.config import GridConfig
 from envs.gridworld.episode import chebyshev
 from envs.gridworld.task import NUM_COND_CHANNELS, NUM_GEN_CHANNELS, SUBGOAL_CHANNEL
