@@ -85,23 +85,29 @@ def _print_summary(spec, args, seeds, result) -> None:
         print(ge.format_intervals(result["rows"], seeds))
 
 
+def _mode_row(spec, task, denoiser, mode, name, all_episodes, args, progress, keep=None):
+    """(row, pooled rollout) of one planning mode over the seeds' episodes ({seed: episodes});
+    keep ({seed: bool (N,)}, default all) selects the episodes the row counts (all are run)."""
+    outs = {seed: ge.evaluate_mode(spec, task, denoiser, eps, seed, mode, args.batch_size,
+                                   progress)
+            for seed, eps in all_episodes.items()}
+    if keep is not None:
+        outs = {seed: (ge.select(r, keep[seed]), t) for seed, (r, t) in outs.items()}
+        all_episodes = {seed: ge.select(eps, keep[seed]) for seed, eps in all_episodes.items()}
+    row, rollout = ge.pooled_row(method_name(name, spec.language), outs, all_episodes,
+                                 spec.grid_config().has_reference)
+    row["language"] = spec.language
+    return row, rollout
+
+
 def _posterior_rows(spec, task, modes, episodes_by_seed, args, progress) -> list[dict]:
     """--posterior-denoiser: each mode planned with envs.gridworld.posterior's denoiser (no
     learning, exact guesses) on every episode, rows named "<mode>, exact posterior"."""
     from envs.gridworld.posterior import posterior_denoiser
 
     denoiser = posterior_denoiser(spec.grid_config())
-    has_reference = spec.grid_config().has_reference
-    rows = []
-    for mode in modes:
-        outs = {seed: ge.evaluate_mode(spec, task, denoiser, eps, seed, mode, args.batch_size,
-                                       progress)
-                for seed, eps in episodes_by_seed.items()}
-        name = method_name(f"{METHOD_NAMES[mode]}, exact posterior", spec.language)
-        row, _ = ge.pooled_row(name, outs, episodes_by_seed, has_reference)
-        row["language"] = spec.language
-        rows.append(row)
-    return rows
+    return [_mode_row(spec, task, denoiser, mode, f"{METHOD_NAMES[mode]}, exact posterior",
+                      episodes_by_seed, args, progress)[0] for mode in modes]
 
 
 def _policy_rows(setting, seeds, args, progress, episodes_by_seed, language) -> list[dict]:
@@ -143,7 +149,6 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     checkpoint, train_seconds, denoiser = _denoiser(spec, args, modes, parser, progress)
 
     languages = LANGUAGE_CHOICES[args.language]
-    has_reference = spec.grid_config().has_reference
     task = spec.task(denoiser.num_gen_channels)
     rows, rollouts, episodes_of = [], {}, {}
     keep = None
@@ -162,13 +167,8 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         per_seed = {seed: ge.select(eps, keep[seed]) for seed, eps in all_episodes.items()}
         episodes_of[language] = per_seed
         for mode in modes:
-            outs = {seed: ge.evaluate_mode(lspec, task, denoiser, eps, seed, mode,
-                                           args.batch_size, progress)
-                    for seed, eps in all_episodes.items()}
-            outs = {seed: (ge.select(r, keep[seed]), t) for seed, (r, t) in outs.items()}
-            row, rollouts[language, mode] = ge.pooled_row(method_name(mode, language), outs,
-                                                          per_seed, has_reference)
-            row["language"] = language
+            row, rollouts[language, mode] = _mode_row(lspec, task, denoiser, mode, mode,
+                                                      all_episodes, args, progress, keep)
             rows.append(row)
         if args.posterior_denoiser:
             rows += _posterior_rows(lspec, task, modes, all_episodes, args, progress)

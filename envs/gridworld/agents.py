@@ -41,8 +41,8 @@ import jax
 import jax.numpy as jnp
 
 from diffplan.baselines.policies import LoadedPolicy
-from envs.gridworld import bfs, env, grammar
-from envs.gridworld.slots import instruction_slots
+from envs.gridworld import bfs, env
+from envs.gridworld.slots import instruction_cells, instruction_slots
 from envs.gridworld.episode import OBSTACLE_CELL, compass_sector
 from envs.gridworld.task import AGENT_CHANNEL, _argmax_cell
 
@@ -105,12 +105,8 @@ def searcher_move(condition, tokens):
     agent = _first_cell(condition[..., AGENT_CHANNEL] > 0.5)
     visited = condition[..., 3] > 0.5
     unseen = condition[..., 4] < 0.5
-    ref_token, target_token, dir_token = instruction_slots(tokens)
-    reference = (cells == ref_token) & (ref_token > 0)
-    target = (cells == target_token) & (target_token > 0)
-    reference_due = (ref_token > 0) & ~jnp.any(reference & visited)
-    is_direction = jnp.asarray(grammar.DIRECTION_TOKEN_IDS) == dir_token
-    direction = jnp.where(jnp.any(is_direction), jnp.argmax(is_direction), -1)
+    reference, target, direction = instruction_cells(cells, tokens)
+    reference_due = (instruction_slots(tokens)[0] > 0) & ~jnp.any(reference & visited)
     ref_cell = _first_cell(reference)
     in_sector = unseen & sector_mask(ref_cell, direction, size) & jnp.any(reference)
     explore = jnp.where(jnp.any(in_sector), in_sector, unseen)

@@ -22,9 +22,8 @@ import jax.numpy as jnp
 
 from diffplan.denoiser import LoadedDenoiser
 from diffplan.schedule import cosine_schedule
-from envs.gridworld import grammar
-from envs.gridworld.agents import sector_mask
-from envs.gridworld.slots import instruction_slots
+from envs.gridworld.agents import _first_cell, sector_mask
+from envs.gridworld.slots import instruction_cells
 from envs.gridworld.config import GridConfig
 from envs.gridworld.episode import chebyshev
 from envs.gridworld.task import NUM_COND_CHANNELS, NUM_GEN_CHANNELS, SUBGOAL_CHANNEL
@@ -35,25 +34,17 @@ SCHEDULE_STEPS = 100
 """Training timesteps of the schedule it is sampled with (any plan step count up to this)."""
 
 
-def _first(mask):
-    """int32 (2,): the first cell (row-major) of mask bool (H, W)."""
-    flat = jnp.argmax(mask.ravel())
-    return jnp.stack([flat // mask.shape[1], flat % mask.shape[1]]).astype(jnp.int32)
-
-
 def target_candidates(config: GridConfig, cells, seen, tokens):
     """bool (H, W): where the instruction's target may lie. cells int32 (H, W) the condition's
     cell tokens, seen bool (H, W), tokens int32 (L,) the instruction. The target's cell once it
     has been seen; else the unseen cells the generator could have put it in (see the module
     docstring), or every unseen cell in a setting without a reference."""
-    ref_token, target_token, dir_token = instruction_slots(tokens)
-    target = (cells == target_token) & (target_token > 0) & seen
+    reference, target, direction = instruction_cells(cells, tokens)
+    target = target & seen
     unseen = ~seen
     if config.has_reference:
-        reference = (cells == ref_token) & (ref_token > 0) & seen
-        ref_cell = _first(reference)
-        is_direction = jnp.asarray(grammar.DIRECTION_TOKEN_IDS) == dir_token
-        direction = jnp.where(jnp.any(is_direction), jnp.argmax(is_direction), -1)
+        reference = reference & seen
+        ref_cell = _first_cell(reference)
         rows, cols = jnp.meshgrid(jnp.arange(config.size), jnp.arange(config.size),
                                   indexing="ij")
         d_ref = chebyshev(jnp.stack([rows, cols], -1), ref_cell)
@@ -78,8 +69,7 @@ def posterior_plan(config: GridConfig, x_t, tokens):
     pick = jnp.argmax(jnp.where(candidates, noise, -jnp.inf).ravel())
     goal = (jnp.arange(cells.size) == pick).reshape(cells.shape)
     if config.has_reference:
-        ref_token = instruction_slots(tokens)[0]
-        reference = (cells == ref_token) & (ref_token > 0) & seen
+        reference = instruction_cells(cells, tokens)[0] & seen
         subgoal = jnp.where(jnp.any(reference & visited), goal, reference)
     else:
         subgoal = goal

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from envs.gridworld import grammar
 
-__all__ = ["NUM_CLASSES", "instruction_slots"]
+__all__ = ["NUM_CLASSES", "instruction_slots", "instruction_cells"]
 
 NUM_CLASSES = len(grammar.OBJECT_NAMES)
 """Object classes an instruction can name."""
@@ -35,3 +35,16 @@ def instruction_slots(tokens):
     :func:`_heuristic_slots`; 0 where the instruction has no such slot."""
     matched, *slots = grammar.parse(tokens)
     return tuple(jnp.where(matched, a, b) for a, b in zip(slots, _heuristic_slots(tokens)))
+
+
+def instruction_cells(cells, tokens):
+    """Where the instruction's words are on the map: (reference bool (H, W), target bool (H, W),
+    direction int32 () the compass sector 0..7 its direction word names, -1 if none). cells
+    int32 (H, W) the condition's cell tokens (unseen cells hold no object token, so only seen
+    cells match); tokens int32 (L,) the instruction."""
+    ref_token, target_token, dir_token = instruction_slots(tokens)
+    reference = (cells == ref_token) & (ref_token > 0)
+    target = (cells == target_token) & (target_token > 0)
+    is_direction = jnp.asarray(grammar.DIRECTION_TOKEN_IDS) == dir_token
+    direction = jnp.where(jnp.any(is_direction), jnp.argmax(is_direction), -1)
+    return reference, target, direction

@@ -65,13 +65,18 @@ def _random_detour(key, state: env.State, config: GridConfig, num_moves, max_mov
     """The state after ``num_moves`` (int32 () <= max_moves, static) uniformly random moves
     from ``state`` (moves into obstacles or off the grid stay in place, as in the world)."""
     actions = jax.random.randint(key, (max_moves,), 0, 4)
+    return _walk(state, config, num_moves, max_moves, lambda s, i: actions[i])
 
-    def move(s, inputs):
-        i, action = inputs
-        moved = env.step(s, action, config)
+
+def _walk(state: env.State, config: GridConfig, num_moves, max_moves: int, action_of):
+    """The state after ``num_moves`` (int32 () <= max_moves, static) moves, move i being
+    ``action_of(state, i)`` (a done state stays as it is: env.step)."""
+
+    def move(s, i):
+        moved = env.step(s, action_of(s, i), config)
         return jax.tree.map(lambda new, old: jnp.where(i < num_moves, new, old), moved, s), None
 
-    state, _ = jax.lax.scan(move, state, (jnp.arange(max_moves), actions))
+    state, _ = jax.lax.scan(move, state, jnp.arange(max_moves))
     return state
 
 
@@ -79,17 +84,13 @@ def _searcher_walk(state: env.State, tokens, config: GridConfig, num_moves,
                    max_moves: int):
     """The state after ``num_moves`` (int32 () <= max_moves, static) moves of the searcher
     (``envs.gridworld.agents.searcher_move``: nothing learned, it sees what the agent sees) from
-    ``state``, stopping early where the episode ends."""
+    ``state`` (a done state stays as it is)."""
     from envs.gridworld.agents import searcher_move
 
-    def move(s, i):
-        action = searcher_move(condition_from_observation(env.observe(s, config)), tokens)
-        moved = env.step(s, action, config)
-        go = (i < num_moves) & ~s.done
-        return jax.tree.map(lambda new, old: jnp.where(go, new, old), moved, s), None
+    def action_of(s, i):
+        return searcher_move(condition_from_observation(env.observe(s, config)), tokens)
 
-    state, _ = jax.lax.scan(move, state, jnp.arange(max_moves))
-    return state
+    return _walk(state, config, num_moves, max_moves, action_of)
 
 
 def _route_cells(positions, valid, reference, pending, size: int, later_leg_value: float):
