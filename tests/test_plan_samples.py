@@ -5,6 +5,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from diffplan import Planner, PlannerConfig, rollout
 from diffplan.planner import SAMPLE_STREAM
@@ -142,19 +144,72 @@ def test_grid_plan_cost_is_the_walk_to_the_heading_cell():
         7.0 + REFUTED_PLAN_COST
 
 
-def test_a_follow_task_ranks_a_path_that_leads_there_first():
-    """With the follow psi a plan whose path cells do not connect the agent to where the plan
-    heads costs REFUTED_PLAN_COST more: psi could not follow it there."""
-    from envs.gridworld.task import path_leads_to_heading
+def test_a_follow_task_ranks_a_path_psi_would_follow_there_first():
+    """With the follow psi a plan along whose marks psi would not arrive where the plan heads
+    costs REFUTED_PLAN_COST more: a broken path, no path, or a fork whose other leg psi takes."""
+    from envs.gridworld.task import follow_moves
 
     follow = GridTask(make_config("p_mo2g"), psi_kind="follow")
     state = _state((5, 5), target=(5, 9), reference=(0, 1), reached=True)
     bare = _point_plan(goal=(5, 9), subgoal=(5, 9))
     led = bare.at[5, 5:10, 0].set(1.0)
     broken = led.at[5, 7, 0].set(-1.0)
-    assert bool(path_leads_to_heading(state, led))
-    assert not bool(path_leads_to_heading(state, broken))
-    assert not bool(path_leads_to_heading(state, bare))
+    assert int(follow_moves(state, led)) == 4
+    assert int(follow_moves(state, broken)) == -1
+    assert int(follow_moves(state, bare)) == -1
     assert float(follow.plan_cost(state, led)) == 4.0
     assert float(follow.plan_cost(state, broken)) == 4.0 + REFUTED_PLAN_COST
     assert float(GridTask(make_config("p_mo2g")).plan_cost(state, broken)) == 4.0
+    # A fork at (5, 7): the leg north is marked more strongly, so psi leaves the route there.
+    fork = led.at[1:5, 7, 0].set(1.0).at[4, 7, 0].set(1.0).at[5, 8, 0].set(0.9)
+    assert int(follow_moves(state, fork)) == -1
+    assert int(follow_moves(state, fork.at[4, 7, 0].set(0.8))) == 4
+
+
+def _numpy_follow_moves(state, plan):
+    """Plain restatement of follow_moves: psi_follow's rule replayed cell by cell."""
+    grid, seen = np.asarray(state.grid), np.asarray(state.seen)
+    visited = np.asarray(state.visited).copy()
+    plan = np.asarray(plan)
+    known_obstacle = seen & (grid == OBSTACLE_CELL)
+    sub = np.where(known_obstacle | visited, -np.inf, plan[..., 2])
+    heading = np.unravel_index(np.argmax(sub), sub.shape)
+    goal = np.unravel_index(np.argmax(np.where(known_obstacle, -np.inf, plan[..., 1])),
+                            sub.shape)
+    agent = tuple(int(v) for v in np.asarray(state.agent))
+    size = grid.shape[0]
+    for moves in range(2 * 2 * size + 1):
+        if agent == heading:
+            return moves
+        if moves == 2 * 2 * size:
+            return -1
+        best, best_value = None, -np.inf
+        for dr, dc in ((-1, 0), (0, 1), (1, 0), (0, -1)):  # N, E, S, W
+            r, c = agent[0] + dr, agent[1] + dc
+            if not (0 <= r < size and 0 <= c < size) or known_obstacle[r, c] or visited[r, c]:
+                continue
+            if (r, c) == goal and goal != heading:
+                continue
+            if plan[r, c, 0] > 0 and plan[r, c, 0] > best_value:
+                best, best_value = (r, c), plan[r, c, 0]
+        if best is None:
+            return -1
+        agent = best
+        visited[best] = True
+    return -1
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), density=st.floats(0.2, 0.8))
+def test_follow_moves_matches_a_numpy_replay(seed, density):
+    from envs.gridworld.task import follow_moves
+
+    rng = np.random.default_rng(seed)
+    state = _state(tuple(rng.integers(0, 16, 2)), target=(5, 9), reference=(0, 1))
+    grid = np.where(rng.random((16, 16)) < 0.15, OBSTACLE_CELL, 0).astype(np.int8)
+    grid[tuple(np.asarray(state.agent))] = 0
+    state = state.replace(grid=jnp.asarray(grid), seen=jnp.asarray(rng.random((16, 16)) < 0.7),
+                          visited=state.visited | jnp.asarray(rng.random((16, 16)) < 0.05))
+    plan = rng.uniform(-1, 1, (16, 16, 3)).astype(np.float32)
+    plan[..., 0] = np.where(rng.random((16, 16)) < density, np.abs(plan[..., 0]), -1.0)
+    assert int(follow_moves(state, jnp.asarray(plan))) == _numpy_follow_moves(state, plan)

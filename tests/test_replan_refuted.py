@@ -127,18 +127,17 @@ def test_a_task_without_plan_refuted_refuses_the_trigger(p_mo2g_episodes):
         rollout(task, planner, keys, episodes)
 
 
-def test_a_follow_plan_is_dropped_where_its_path_runs_out():
-    """With psi_kind "follow" a kept plan is also refuted where no unvisited neighbour of the
-    agent is marked as path (it would walk the agent back over its own track)."""
-    from envs.gridworld.task import path_ahead
-
+def test_a_follow_plan_is_dropped_where_its_path_would_not_take_the_agent_there():
+    """With psi_kind "follow" a kept plan is also refuted where psi, replaying its marks, would
+    not arrive where it heads: no unvisited neighbour marked (it would walk the agent back over
+    its own track), a gap, or a marked neighbour already visited."""
     task = GridTask(make_config("p_mo2g"), psi_kind="follow")
     plan = _point_plan(goal=(9, 9), subgoal=(9, 9))
     state = _state((5, 5), target=(9, 9), reference=(0, 1), reached=True)
     assert not bool(GridTask(make_config("p_mo2g")).plan_refuted(state, plan))
-    assert not bool(path_ahead(state, plan)) and bool(task.plan_refuted(state, plan))
-    ahead = plan.at[5, 6, 0].set(1.0)
-    assert bool(path_ahead(state, ahead)) and not bool(task.plan_refuted(state, ahead))
-    # A marked neighbour already visited is not ahead.
+    assert bool(task.plan_refuted(state, plan))
+    ahead = plan.at[5, 6:10, 0].set(1.0).at[5:10, 9, 0].set(1.0)
+    assert not bool(task.plan_refuted(state, ahead))
+    assert bool(task.plan_refuted(state, ahead.at[7, 9, 0].set(-1.0)))  # a gap
     behind = state.replace(visited=state.visited.at[5, 6].set(True))
-    assert not bool(path_ahead(behind, ahead)) and bool(task.plan_refuted(behind, ahead))
+    assert bool(task.plan_refuted(behind, ahead))

@@ -184,20 +184,28 @@ def unfollowable(state: env.State, plan, use_goal_channel: bool = True):
     return ~jnp.any(jnp.isfinite(score))
 
 
-def path_ahead(state: env.State, plan, use_goal_channel: bool = True):
-    """bool (): the plan marks an unvisited legal neighbour as path (psi_follow has somewhere
-    new to go; without one it steps back onto visited cells)."""
-    return _follow_candidates(state, plan, use_goal_channel)[4]
-
-
-def path_leads_to_heading(state: env.State, plan, use_goal_channel: bool = True):
-    """bool (): the plan's path cells (value > 0, not known obstacles) connect the agent's cell
-    to the cell the plan heads for (4-neighbours): following the marks can get it there."""
-    known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
-    on_path = (plan[..., 0] > 0) & ~known_obstacle
+def follow_moves(state: env.State, plan, use_goal_channel: bool = True):
+    """int32 (): the moves psi_follow would take along this plan (plan float32 (H, W, G)) from
+    the agent to the cell the plan heads for (:func:`goal_estimate`), replayed on what the
+    agent knows (unseen cells free) with every move onto an unvisited marked neighbour; -1
+    if it would not arrive that way within 2 (H + W) moves (it would stop beside unmarked
+    cells, step back onto its track, or walk off along another leg of the path). The rule is
+    psi_follow's own (:func:`_follow_candidates`), not a search over the map."""
     heading = goal_estimate(state, plan, use_goal_channel)
-    on_path = on_path | env._cell_mask(state.agent, plan.shape[1])
-    return bfs.bfs_distance(on_path, state.agent)[heading[0], heading[1]] >= 0
+    h, w = state.grid.shape
+
+    def body(carry, _):
+        s, moves, arrived, stuck = carry
+        cells, _, score, _, ahead = _follow_candidates(s, plan, use_goal_channel)
+        go = ~arrived & ~stuck & ahead
+        nxt = jnp.where(go, cells[jnp.argmax(score)], s.agent).astype(jnp.int32)
+        s = s.replace(agent=nxt, visited=s.visited | env._cell_mask(nxt, w))
+        arrived = arrived | jnp.all(nxt == heading)
+        return (s, moves + go.astype(jnp.int32), arrived, stuck | (~arrived & ~go)), None
+
+    start = (state, jnp.int32(0), jnp.bool_(False), jnp.bool_(False))
+    (_, moves, arrived, _), _ = jax.lax.scan(body, start, None, length=2 * (h + w))
+    return jnp.where(arrived, moves, -1).astype(jnp.int32)
 
 
 def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
@@ -320,23 +328,25 @@ class GridTask:
 
     def plan_refuted(self, state: env.State, plan):
         """bool (): the plan's guess is disproved by what has been seen (the "on_refuted"
-        re-planning trigger; :func:`plan_refuted`); with psi_kind "follow" also where the
-        plan's path has no unvisited cell next to the agent (:func:`path_ahead`: a kept plan
-        would walk the agent back and forth over its own track)."""
+        re-planning trigger; :func:`plan_refuted`); with psi_kind "follow" also where psi,
+        replaying the plan's marks, would not arrive where the plan heads
+        (:func:`follow_moves` -1: a kept plan would walk the agent back and forth over its own
+        track, or off along the path's other leg)."""
         refuted = plan_refuted(state, plan, self.config.has_reference, self.use_goal_channel)
         if self.follows_plan:
-            refuted = refuted | ~path_ahead(state, plan, self.use_goal_channel)
+            refuted = refuted | (follow_moves(state, plan, self.use_goal_channel) < 0)
         return refuted
 
     def plan_cost(self, state: env.State, plan):
         """float32 (): how far the plan sends the agent, a refuted plan last (the ranking of
         several drawn plans, ``PlannerConfig.samples``; :func:`plan_cost`); with psi_kind
-        "follow" a plan whose path does not lead from the agent to where it heads
-        (:func:`path_leads_to_heading`) also costs REFUTED_PLAN_COST more."""
+        "follow" a plan along whose marks psi_follow would not arrive where it heads
+        (:func:`follow_moves` -1: a path broken, or one whose later leg draws the agent away
+        from its sub-goal) also costs REFUTED_PLAN_COST more."""
         cost = plan_cost(state, plan, self.config.has_reference, self.use_goal_channel)
         if self.follows_plan:
-            cost = cost + REFUTED_PLAN_COST * ~path_leads_to_heading(state, plan,
-                                                                     self.use_goal_channel)
+            moves = follow_moves(state, plan, self.use_goal_channel)
+            cost = cost + REFUTED_PLAN_COST * (moves < 0)
         return cost
 
     def at_goal_estimate(self, state: env.State, plan):
