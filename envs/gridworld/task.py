@@ -152,24 +152,35 @@ PSI_KINDS = ("search", "follow")
 or the paper's neighbour-following psi (:func:`psi_follow`)."""
 
 
-def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True):
+def _follow_targets(state: env.State, plan, use_goal_channel: bool = True):
+    """(heading int32 (2,) the cell the plan heads for, avoid int32 (2,) the goal estimate's
+    cell while the sub-goal is elsewhere ((-1, -1) otherwise, never a neighbour), or None
+    without a sub-goal channel): what psi_follow steers by; they change only as cells
+    are seen or the heading is reached."""
+    heading = goal_estimate(state, plan, use_goal_channel)
+    if not (use_goal_channel and plan.shape[-1] >= 3):
+        return heading, None
+    goal = goal_cell(plan, state.seen & (state.grid == OBSTACLE_CELL))
+    return heading, jnp.where(jnp.any(goal != heading), goal, -1).astype(jnp.int32)
+
+
+def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True, targets=None):
     """What psi_follow weighs: (cells int32 (4, 2) the neighbours N, E, S, W, legal bool (4,)
     on the grid and not known obstacles (nor the goal estimate's cell while the sub-goal is
     elsewhere), score float32 (4,) the path value of the candidates (-inf elsewhere): the
     marked (path > 0) unvisited neighbours, or the marked visited ones when there are none,
     heading int32 (2,) the cell the plan heads for, ahead bool () some unvisited neighbour is
-    marked)."""
+    marked). targets: :func:`_follow_targets` if already known."""
     h, w = state.grid.shape
     cells, inside = bfs.neighbours(state.agent, (h, w))
     r = jnp.clip(cells[:, 0], 0, h - 1)
     c = jnp.clip(cells[:, 1], 0, w - 1)
     known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
     legal = inside & ~known_obstacle[r, c]
-    heading = goal_estimate(state, plan, use_goal_channel)
-    if use_goal_channel and plan.shape[-1] >= 3:
-        goal = goal_cell(plan, known_obstacle)
-        avoid = jnp.all(cells == goal, axis=-1) & jnp.any(goal != heading)
-        legal = legal & ~avoid
+    heading, avoid_cell = _follow_targets(state, plan, use_goal_channel) if targets is None \
+        else targets
+    if avoid_cell is not None:
+        legal = legal & ~jnp.all(cells == avoid_cell, axis=-1)
     path = plan[..., 0][r, c]
     marked = legal & (path > 0)
     fresh = marked & ~state.visited[r, c]
@@ -191,20 +202,21 @@ def follow_moves(state: env.State, plan, use_goal_channel: bool = True):
     if it would not arrive that way within 2 (H + W) moves (it would stop beside unmarked
     cells, step back onto its track, or walk off along another leg of the path). The rule is
     psi_follow's own (:func:`_follow_candidates`), not a search over the map."""
-    heading = goal_estimate(state, plan, use_goal_channel)
+    targets = _follow_targets(state, plan, use_goal_channel)
+    heading = targets[0]
     h, w = state.grid.shape
 
     def body(carry, _):
-        s, moves, arrived, stuck = carry
-        cells, _, score, _, ahead = _follow_candidates(s, plan, use_goal_channel)
-        go = ~arrived & ~stuck & ahead
+        # Where psi cannot step on (nothing ahead), the state stays and so it stays put.
+        s, moves, arrived = carry
+        cells, _, score, _, ahead = _follow_candidates(s, plan, use_goal_channel, targets)
+        go = ~arrived & ahead
         nxt = jnp.where(go, cells[jnp.argmax(score)], s.agent).astype(jnp.int32)
         s = s.replace(agent=nxt, visited=s.visited | env._cell_mask(nxt, w))
-        arrived = arrived | jnp.all(nxt == heading)
-        return (s, moves + go.astype(jnp.int32), arrived, stuck | (~arrived & ~go)), None
+        return (s, moves + go.astype(jnp.int32), arrived | jnp.all(nxt == heading)), None
 
-    start = (state, jnp.int32(0), jnp.bool_(False), jnp.bool_(False))
-    (_, moves, arrived, _), _ = jax.lax.scan(body, start, None, length=2 * (h + w))
+    start = (state, jnp.int32(0), jnp.bool_(False))
+    (_, moves, arrived), _ = jax.lax.scan(body, start, None, length=2 * (h + w))
     return jnp.where(arrived, moves, -1).astype(jnp.int32)
 
 
