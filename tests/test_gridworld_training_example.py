@@ -197,3 +197,44 @@ def test_searcher_route_examples_explore_past_the_reference():
     assert past_reference > BATCH // 2 and off_expert > 0
     with pytest.raises(ValueError, match="search_prob"):
         make_batch_fn(far, search_prob=1.5)
+
+
+def test_stray_examples_walk_toward_the_target_before_the_reference():
+    """stray_prob = 1 in P-MO2G-far: an agent that had not stood on the reference walked along a
+    shortest path toward the target (never onto it), so it is nearer the target than the same
+    example's agent without the walk; its sub-goal is still the reference (where the walk did
+    not cross it), and its path target a shortest route through the reference. Settings
+    without a reference are left as they are."""
+    from envs.gridworld.training import make_batch_fn
+
+    far, mo1g = make_config("p_mo2g_far"), make_config("mo1g")
+    count = 64
+    keys = jax.random.split(jax.random.PRNGKey(5), count)
+    run = jax.jit(jax.vmap(lambda k: (training_example(k, far, 0.5, stray_prob=1.0),
+                                      training_example(k, far, 0.5),
+                                      generate(jax.random.split(k, 5)[0], far),
+                                      training_example(k, mo1g, 0.5, stray_prob=1.0),
+                                      training_example(k, mo1g, 0.5))))
+    (x, _, _), (plain, _, _), ep, mo1g_stray, mo1g_plain = jax.device_get(run(keys))
+    np.testing.assert_array_equal(mo1g_stray[0], mo1g_plain[0])
+    stray_distance = plain_distance = pending = 0
+    for i in range(count):
+        target, reference = tuple(ep.target[i]), tuple(ep.reference[i])
+        passable = ep.grid[i] != OBSTACLE_CELL
+        to_target = oracle_bfs(passable, target)
+        agent = tuple(np.argwhere(x[i, ..., 2] > 0)[0])
+        plain_agent = tuple(np.argwhere(plain[i, ..., 2] > 0)[0])
+        if (plain[i, ..., 3] > 0)[reference]:  # past the reference (or a detour crossed it)
+            continue
+        assert to_target[agent] >= 1
+        if not (x[i, ..., 3] > 0)[reference]:  # the walk did not cross the reference
+            assert np.argwhere(x[i, ..., SUBGOAL_CHANNEL] > 0).tolist() == [list(reference)]
+            path = x[i, ..., PATH_CHANNEL] > 0
+            assert path.sum() - 1 <= oracle_bfs(passable, reference)[agent] + to_target[reference]
+            assert _connected(path, agent, reference)
+        pending += 1
+        stray_distance += to_target[agent]
+        plain_distance += to_target[plain_agent]
+    assert pending >= 5 and stray_distance < plain_distance
+    with pytest.raises(ValueError, match="stray_prob"):
+        make_batch_fn(far, stray_prob=-0.1)

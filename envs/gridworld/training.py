@@ -36,6 +36,12 @@ SEARCH_STREAM = 0x5EA
 MAX_SEARCH_MOVES = 16
 """A searcher-route example stops after 0..MAX_SEARCH_MOVES of the searcher's moves past the
 reference (fewer if it reached the target)."""
+STRAY_STREAM = 0x57A
+"""The stray-walk draws of an example (:func:`training_example`, ``stray_prob``) use
+``fold_in(example key, STRAY_STREAM)``, so the other draws stay those of a recipe without."""
+MAX_STRAY_MOVES = 12
+"""A stray example's agent takes 1..MAX_STRAY_MOVES moves toward the target (fewer where it
+stands beside it)."""
 
 
 def state_along_expert(episode: Episode, config: GridConfig, index):
@@ -68,16 +74,38 @@ def _random_detour(key, state: env.State, config: GridConfig, num_moves, max_mov
     return _walk(state, config, num_moves, max_moves, lambda s, i: actions[i])
 
 
-def _walk(state: env.State, config: GridConfig, num_moves, max_moves: int, action_of):
+def _walk(state: env.State, config: GridConfig, num_moves, max_moves: int, action_of,
+          keep_going=None):
     """The state after ``num_moves`` (int32 () <= max_moves, static) moves, move i being
-    ``action_of(state, i)`` (a done state stays as it is: env.step)."""
+    ``action_of(state, i)`` (a done state stays as it is: env.step); with ``keep_going(state,
+    i)`` (bool ()), the walk also stops at the first state where it is False."""
 
     def move(s, i):
         moved = env.step(s, action_of(s, i), config)
-        return jax.tree.map(lambda new, old: jnp.where(i < num_moves, new, old), moved, s), None
+        go = i < num_moves
+        if keep_going is not None:
+            go = go & keep_going(s, i)
+        return jax.tree.map(lambda new, old: jnp.where(go, new, old), moved, s), None
 
     state, _ = jax.lax.scan(move, state, jnp.arange(max_moves))
     return state
+
+
+def _stray_walk(state: env.State, config: GridConfig, num_moves, max_moves: int):
+    """The state after ``num_moves`` (int32 () <= max_moves, static) moves along a shortest
+    path (whole map known) toward the target from ``state``, stopping beside the target (it
+    is never entered): where an agent that took the route's later leg too early stands, the
+    reference not yet stood on."""
+    passable = state.grid != OBSTACLE_CELL
+    field = bfs.cost_to_go(passable, state.target)
+
+    def action_of(s, i):
+        return bfs.best_move(field, passable, s.agent)
+
+    def keep_going(s, i):
+        return field[s.agent[0], s.agent[1]] > 1
+
+    return _walk(state, config, num_moves, max_moves, action_of, keep_going)
 
 
 def _searcher_walk(state: env.State, tokens, config: GridConfig, num_moves,
@@ -123,7 +151,8 @@ def _expert_from(state: env.State, episode: Episode, config: GridConfig,
 
 
 def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_detour: int = 8,
-                     later_leg_value: float = 1.0, search_prob: float = 0.0):
+                     later_leg_value: float = 1.0, search_prob: float = 0.0,
+                     stray_prob: float = 0.0):
     """One supervised example: a state along an expert path and the plan from there.
 
     The agent is placed after a uniformly drawn number of expert moves (0..expert_length - 1)
@@ -134,7 +163,11 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
     the reference, then 0..MAX_SEARCH_MOVES moves of the searcher's exploration of the
     instructed sector (``envs.gridworld.agents``): states an agent that searches reaches, with
     parts of the sector seen and empty, which the expert's walk straight to the target never
-    shows. Targets of the generated channels (envs.gridworld.task):
+    shows. With probability ``stray_prob`` (settings with a reference), an agent that has not
+    yet stood on the reference then takes 1..MAX_STRAY_MOVES moves along a shortest path
+    toward the target, stopping beside it: the states of an agent that took the route's later
+    leg too early (at a fork where the plan marks both legs), whose plan must still name the
+    reference. Targets of the generated channels (envs.gridworld.task):
       path      a shortest path from there (through the reference unless it was reached) to
                 the target, ends included (without a detour: the rest of the expert path):
                 +1 on its cells up to the reference (all of them once the reference was
@@ -163,10 +196,21 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
         num_search = jax.random.randint(k_search_moves, (), 0, MAX_SEARCH_MOVES + 1)
         state = _searcher_walk(state, episode.tokens, config,
                                jnp.where(searching, num_search, 0), MAX_SEARCH_MOVES)
-    if detour_prob > 0 or search:
+    stray = stray_prob > 0 and config.has_reference
+    if stray:
+        k_stray, k_stray_moves = jax.random.split(jax.random.fold_in(key, STRAY_STREAM))
+        straying = (jax.random.bernoulli(k_stray, stray_prob) & ~state.reached_reference
+                    & ~state.done)
+        if search:
+            straying = straying & ~searching
+        num_stray = jax.random.randint(k_stray_moves, (), 1, MAX_STRAY_MOVES + 1)
+        state = _stray_walk(state, config, jnp.where(straying, num_stray, 0), MAX_STRAY_MOVES)
+    if detour_prob > 0 or search or stray:
         detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done
         if search:
             detour = detour & ~searching
+        if stray:
+            detour = detour & ~straying
         num_moves = jnp.where(detour, jax.random.randint(k_moves, (), 1, max_detour + 1), 0)
         state = _random_detour(k_walk, state, config, num_moves, max_detour)
         path = _expert_from(state, episode, config, later_leg_value)
@@ -213,7 +257,7 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
                   goal_loss_seen_only: bool = False, detour_prob: float = 0.0,
                   goal_loss_weight: float = 1.0, path_near_agent_weight: float = 0.0,
                   later_leg_value: float = 1.0, role_loss_weight: float = 0.0,
-                  search_prob: float = 0.0):
+                  search_prob: float = 0.0, stray_prob: float = 0.0):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of examples of one setting.
 
     goal_channel=False trains without goal information (the paper's "- g" ablation: the goal
@@ -230,7 +274,9 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     fills (:data:`ROLES`, ``diffplan.language.slot_roles``); it needs ``token_classes=3``.
     search_prob: the share of examples placed along the searcher's exploration past the
     reference (:func:`training_example`; used only where the target is hidden from the
-    reference, P-MO2G-far).
+    reference, P-MO2G-far). stray_prob: the share of examples whose agent walked toward the
+    target before standing on the reference (:func:`training_example`; settings with a
+    reference).
     """
     if not role_loss_weight >= 0:
         raise ValueError(f"role_loss_weight must be >= 0, got {role_loss_weight}")
@@ -244,6 +290,8 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         raise ValueError(f"detour_prob must be in [0, 1], got {detour_prob}")
     if not 0 <= search_prob <= 1:
         raise ValueError(f"search_prob must be in [0, 1], got {search_prob}")
+    if not 0 <= stray_prob <= 1:
+        raise ValueError(f"stray_prob must be in [0, 1], got {stray_prob}")
     from diffplan.losses import with_token_labels
     from diffplan.train import Batch
 
@@ -252,7 +300,8 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     def batch_fn(key, batch_size):
         keys = training_episode_keys(key, batch_size)
         example = functools.partial(training_example, config=config, detour_prob=detour_prob,
-                                    later_leg_value=later_leg_value, search_prob=search_prob)
+                                    later_leg_value=later_leg_value, search_prob=search_prob,
+                                    stray_prob=stray_prob)
         x0, tokens, seen = jax.vmap(example)(keys)
         ones = jnp.ones(x0.shape[:-1], jnp.float32)
         path = ones + path_near_agent_weight * jax.vmap(near_agent)(x0[..., AGENT_CHANNEL])
@@ -327,7 +376,9 @@ class Recipe:
     or direction is dropped (0: none; see :func:`make_mixture_batch_fn`). role_loss_weight: 0,
     or the weight of the auxiliary slot-role loss (:func:`make_batch_fn`; the denoiser needs
     ``token_classes=3``). search_prob: the share of P-MO2G-far examples placed along the
-    searcher's exploration of the instructed sector (:func:`training_example`).
+    searcher's exploration of the instructed sector (:func:`training_example`). stray_prob: the
+    share of examples of the settings with a reference whose agent walked toward the target
+    before standing on the reference (:func:`training_example`).
     """
 
     mixture: tuple = TRAINING_MIXTURE
@@ -340,6 +391,7 @@ class Recipe:
     word_dropout: float = 0.0
     role_loss_weight: float = 0.0
     search_prob: float = 0.0
+    stray_prob: float = 0.0
 
     def batch_fn(self):
         return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
@@ -349,7 +401,8 @@ class Recipe:
                                      path_near_agent_weight=self.path_near_agent_weight,
                                      later_leg_value=self.later_leg_value,
                                      role_loss_weight=self.role_loss_weight,
-                                     search_prob=self.search_prob)
+                                     search_prob=self.search_prob,
+                                     stray_prob=self.stray_prob)
 
     @property
     def batch_multiple(self) -> int:
@@ -376,7 +429,8 @@ class Recipe:
                 **({"word_dropout": self.word_dropout} if self.word_dropout else {}),
                 **({"role_loss_weight": self.role_loss_weight}
                    if self.role_loss_weight else {}),
-                **({"search_prob": self.search_prob} if self.search_prob else {})}
+                **({"search_prob": self.search_prob} if self.search_prob else {}),
+                **({"stray_prob": self.stray_prob} if self.stray_prob else {})}
 
 
 # ------------------------------------------------------------------ the episodes of a run
