@@ -203,8 +203,9 @@ def test_stray_examples_walk_toward_the_target_before_the_reference():
     """stray_prob = 1 in P-MO2G-far: an agent that had not stood on the reference walked along a
     shortest path toward the target (never onto it), so it is nearer the target than the same
     example's agent without the walk; its sub-goal is still the reference (where the walk did
-    not cross it), and its path target a shortest route through the reference. Settings
-    without a reference are left as they are."""
+    not cross it), and its path target a shortest route through the reference (its distinct
+    cells at most that route's length: the legs may overlap). Settings without a reference
+    are left as they are."""
     from envs.gridworld.training import make_batch_fn
 
     far, mo1g = make_config("p_mo2g_far"), make_config("mo1g")

@@ -192,25 +192,22 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
         at_reference = jnp.all(episode.expert_positions == episode.reference, axis=-1)
         index = jnp.where(searching, jnp.argmax(at_reference), index)
     state = state_along_expert(episode, config, index)
+    walked = jnp.bool_(False)  # a searcher or stray walk placed the agent (no detour then)
     if search:
         num_search = jax.random.randint(k_search_moves, (), 0, MAX_SEARCH_MOVES + 1)
         state = _searcher_walk(state, episode.tokens, config,
                                jnp.where(searching, num_search, 0), MAX_SEARCH_MOVES)
+        walked = searching
     stray = stray_prob > 0 and config.has_reference
     if stray:
         k_stray, k_stray_moves = jax.random.split(jax.random.fold_in(key, STRAY_STREAM))
         straying = (jax.random.bernoulli(k_stray, stray_prob) & ~state.reached_reference
-                    & ~state.done)
-        if search:
-            straying = straying & ~searching
+                    & ~state.done & ~walked)
         num_stray = jax.random.randint(k_stray_moves, (), 1, MAX_STRAY_MOVES + 1)
         state = _stray_walk(state, config, jnp.where(straying, num_stray, 0), MAX_STRAY_MOVES)
+        walked = walked | straying
     if detour_prob > 0 or search or stray:
-        detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done
-        if search:
-            detour = detour & ~searching
-        if stray:
-            detour = detour & ~straying
+        detour = jax.random.bernoulli(k_detour, detour_prob) & ~state.done & ~walked
         num_moves = jnp.where(detour, jax.random.randint(k_moves, (), 1, max_detour + 1), 0)
         state = _random_detour(k_walk, state, config, num_moves, max_detour)
         path = _expert_from(state, episode, config, later_leg_value)
