@@ -185,12 +185,12 @@ SPECS = {
     "p_mo2g": ExperimentSpec("p_mo2g"),
     # Beyond the paper (envs.gridworld.config), with a denoiser of its own
     # (checkpoints/compile_gridworld_far): the paper settings' mixture with P-MO2G-far examples
-    # in it, 10 diffusion timesteps, 5000 steps of 32 (15 min here), the path target 0.5 on the
+    # in it, 10 diffusion timesteps, 10000 steps of 32 (28 min here), the path target 0.5 on the
     # leg after the reference; chosen on validation seed 1000 (docs/results.md).
     "p_mo2g_far": ExperimentSpec(
         "p_mo2g_far", checkpoint_name=FAR_TRAINING_NAME, later_leg_value=0.5,
         mixture=(("p_mo2g", 14), ("p_mo2g_far", 8), ("mo1g", 6), ("1o1g", 4)),
-        num_train_timesteps=10, train_steps=5000, batch_size=32),
+        num_train_timesteps=10, train_steps=10000, batch_size=32),
 }
 
 

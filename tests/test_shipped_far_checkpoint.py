@@ -13,7 +13,7 @@ from experiments.gridworld_spec import FAR_TRAINING_NAME, SPECS
 from test_shipped_checkpoint import load_shipped
 
 CHECKPOINT = os.path.join(harness.CHECKPOINT_ROOT, FAR_TRAINING_NAME)
-MEASURED = {"SR": 100.0 * 63 / 64, "SR_ordered": 100.0 * 63 / 64, "SPL": 0.920}
+MEASURED = {"SR": 100.0, "SR_ordered": 100.0, "SPL": 0.946}
 """What the shipped model scored on these 64 episodes (warm start, on_refuted)."""
 
 
