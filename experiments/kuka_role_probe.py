@@ -178,7 +178,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                        args.word_dropout)
         rows.append({"method": f"seed {seed}", "training": trained,
                      **{f"#{k}": r for k, r in zip(split.unseen, read)},
-                     "all_held_out": float(min(read) == 100.0)})
+                     "all_held_out": min(read) == 100.0})
     columns = [("method", "{}", "tagger"), ("training", "{:9.1f}", "training")] + [
         (f"#{k}", "{:7.1f}", f"#{k}") for k in split.unseen]
     print(f"sentences whose block words get their roles, % of {EVAL_SENTENCES} per phrasing "
@@ -186,7 +186,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
               f"#{k} {t!r}" for k, t in zip(split.unseen, held)) + ")")
     print(tables.format_table(rows, columns))
     print(f"taggers that read every held-out phrasing: "
-          f"{sum(int(r['all_held_out']) for r in rows)} of {len(rows)}")
+          f"{sum(r['all_held_out'] for r in rows)} of {len(rows)}")
     result = {"experiment": "kuka_role_probe", "extra": extra, "steps": args.steps,
               "word_dropout": args.word_dropout, "seeds": seeds,
               "held_out": dict(zip(map(str, split.unseen), held)), "rows": rows,
