@@ -42,8 +42,10 @@ def check_extra(templates: Sequence[str]) -> list[str]:
         for slot in grammar.SLOTS:
             if template.count(slot) != 1:
                 raise ValueError(f"{template!r} must hold {slot} exactly once")
-        for word in sorted(language.template_words([template], grammar.SLOTS) - known):
-            raise ValueError(f"{template!r}: {word!r} is not a word of the training phrasings")
+        unknown = sorted(language.template_words([template], grammar.SLOTS) - known)
+        if unknown:
+            raise ValueError(f"{template!r}: {unknown[0]!r} is not a word of the training "
+                             "phrasings")
     return list(templates)
 
 
@@ -97,7 +99,10 @@ def train_and_read(seed: int, train, held_out, steps: int, word_dropout: float):
     import jax.numpy as jnp
     import optax
     from diffplan import language
+    from envs.kuka import grammar, scene
 
+    language.check_dropout_rate(word_dropout)
+    block_words = grammar.block_token(jnp.arange(scene.NUM_BLOCKS))
     model = _tagger()
     key = jax.random.PRNGKey(seed)
     params = model.init(key, jnp.zeros((1, train.shape[1]), jnp.int32))
@@ -109,7 +114,7 @@ def train_and_read(seed: int, train, held_out, steps: int, word_dropout: float):
         tokens, roles, named = role_batch(key, train, BATCH)
         if word_dropout:
             tokens = language.drop_words(jax.random.fold_in(key, 1), tokens, word_dropout,
-                                         jnp.arange(1, 5))
+                                         block_words)
 
         def loss(p):
             ce = optax.softmax_cross_entropy_with_integer_labels(model.apply(p, tokens), roles)
@@ -153,16 +158,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
+    from diffplan import language
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    seeds = list(harness.parse_seeds(parser, args))
     try:
-        seeds = [int(s) for s in args.seeds.split(",")]
         extra = check_extra(args.extra)
+        language.check_dropout_rate(args.word_dropout, "--word-dropout")
     except ValueError as e:
         parser.error(str(e))
     cli.check_at_least(parser, "--steps", args.steps, 1)
-    if not 0 <= args.word_dropout < 1:
-        parser.error(f"--word-dropout must be in [0, 1), got {args.word_dropout}")
     cli.check_output_file(parser, "--json", args.json)
     from tqdm import tqdm
 
