@@ -147,7 +147,7 @@ def test_grid_plan_cost_is_the_walk_to_the_heading_cell():
 def test_a_follow_task_ranks_a_path_psi_would_follow_there_first():
     """With the follow psi a plan along whose marks psi would not arrive where the plan heads
     costs REFUTED_PLAN_COST more: a broken path, no path, or a fork whose other leg psi takes."""
-    from envs.gridworld.task import follow_moves
+    from envs.gridworld.task import follow_moves, psi_follow
 
     follow = GridTask(make_config("p_mo2g"), psi_kind="follow")
     state = _state((5, 5), target=(5, 9), reference=(0, 1), reached=True)
@@ -160,24 +160,25 @@ def test_a_follow_task_ranks_a_path_psi_would_follow_there_first():
     assert float(follow.plan_cost(state, led)) == 4.0
     assert float(follow.plan_cost(state, broken)) == 4.0 + REFUTED_PLAN_COST
     assert float(GridTask(make_config("p_mo2g")).plan_cost(state, broken)) == 4.0
-    # A fork at (5, 7): the leg north is marked more strongly, so psi leaves the route there.
+    # A fork at (5, 7), two moves on: the replay past the first move follows the stronger
+    # mark, so psi is sent off along the leg north.
     fork = led.at[1:5, 7, 0].set(1.0).at[4, 7, 0].set(1.0).at[5, 8, 0].set(0.9)
     assert int(follow_moves(state, fork)) == -1
     assert int(follow_moves(state, fork.at[4, 7, 0].set(0.8))) == 4
+    # A fork at the agent's own cell: the first move takes the branch that arrives, however
+    # strongly the other is marked.
+    beside = led.at[1:5, 5, 0].set(1.0).at[5, 6, 0].set(0.6)
+    assert int(follow_moves(state, beside)) == 4
+    assert int(psi_follow(state, beside)) == 1  # east, not the stronger mark north
+    assert int(psi_follow(state, beside.at[5, 7, 0].set(-1.0))) == 0  # none arrives: strongest
 
 
-def _numpy_follow_moves(state, plan):
-    """Plain restatement of follow_moves: psi_follow's rule replayed cell by cell."""
-    grid, seen = np.asarray(state.grid), np.asarray(state.seen)
-    visited = np.asarray(state.visited).copy()
-    plan = np.asarray(plan)
-    known_obstacle = seen & (grid == OBSTACLE_CELL)
-    sub = np.where(known_obstacle | visited, -np.inf, plan[..., 2])
-    heading = np.unravel_index(np.argmax(sub), sub.shape)
-    goal = np.unravel_index(np.argmax(np.where(known_obstacle, -np.inf, plan[..., 1])),
-                            sub.shape)
-    agent = tuple(int(v) for v in np.asarray(state.agent))
-    size = grid.shape[0]
+def numpy_replay(known_obstacle, visited, agent, plan, heading, goal):
+    """Plain replay of psi_follow's rule from agent (a cell): moves onto the unvisited
+    neighbour marked most strongly until heading; -1 if it stops or takes 2 (H + W) moves."""
+    visited = visited.copy()
+    size = known_obstacle.shape[0]
+    visited[agent] = True
     for moves in range(2 * 2 * size + 1):
         if agent == heading:
             return moves
@@ -197,6 +198,44 @@ def _numpy_follow_moves(state, plan):
         agent = best
         visited[best] = True
     return -1
+
+
+def numpy_branches(known_obstacle, visited, agent, plan):
+    """Plain restatement of psi_follow's first step: (candidates [(move, cell, path value)]:
+    the marked unvisited legal neighbours, or the marked visited ones when there are none;
+    branch moves {move: 1 + numpy_replay from there, -1 not arriving})."""
+    size = known_obstacle.shape[0]
+    sub = np.where(known_obstacle | visited, -np.inf, plan[..., 2])
+    heading = tuple(int(v) for v in np.unravel_index(np.argmax(sub), sub.shape))
+    goal = tuple(int(v) for v in np.unravel_index(
+        np.argmax(np.where(known_obstacle, -np.inf, plan[..., 1])), sub.shape))
+    marked = []
+    for move, (dr, dc) in enumerate(((-1, 0), (0, 1), (1, 0), (0, -1))):
+        r, c = agent[0] + dr, agent[1] + dc
+        if not (0 <= r < size and 0 <= c < size) or known_obstacle[r, c]:
+            continue
+        if (r, c) == goal and goal != heading:
+            continue
+        if plan[r, c, 0] > 0:
+            marked.append((move, (r, c), plan[r, c, 0]))
+    fresh = [m for m in marked if not visited[m[1]]]
+    candidates = fresh or marked
+    branches = {}
+    for move, cell, _ in candidates:
+        moves = numpy_replay(known_obstacle, visited, cell, plan, heading, goal)
+        branches[move] = moves + 1 if moves >= 0 else -1
+    return candidates, branches
+
+
+def _numpy_follow_moves(state, plan):
+    """Plain restatement of follow_moves: the soonest arriving branch of psi_follow's first
+    step, then psi_follow's rule replayed cell by cell."""
+    known_obstacle = np.asarray(state.seen) & (np.asarray(state.grid) == OBSTACLE_CELL)
+    agent = tuple(int(v) for v in np.asarray(state.agent))
+    _, branches = numpy_branches(known_obstacle, np.asarray(state.visited), agent,
+                                 np.asarray(plan))
+    arriving = [m for m in branches.values() if m >= 0]
+    return min(arriving) if arriving else -1
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

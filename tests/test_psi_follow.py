@@ -13,6 +13,7 @@ from envs.gridworld import bfs
 from envs.gridworld.config import make_config
 from envs.gridworld.episode import OBSTACLE_CELL, generate_batch
 from envs.gridworld.task import GridTask, psi_follow, unfollowable
+from test_plan_samples import numpy_branches
 from test_planner import (P_MO2G_REF_POS, P_MO2G_TARGET_POS, VISITED_CHANNEL, as_denoiser,
                           oracle_planner)
 
@@ -24,23 +25,22 @@ def _numpy_follow(grid, seen, visited, agent, plan):
     h, w = grid.shape
     known_obstacle = seen & (grid == OBSTACLE_CELL)
     heading = np.asarray(goal_estimate_np(known_obstacle, visited, plan))
+    candidates, branches = numpy_branches(known_obstacle, visited, tuple(int(v) for v in agent),
+                                          plan)
+    arriving = [c for c in candidates if branches[c[0]] >= 0]
+    pool = arriving or candidates
+    if pool:
+        best = max(c[2] for c in pool)
+        return min(c[0] for c in pool if c[2] == best), False
     goal = np.unravel_index(np.argmax(np.where(known_obstacle, -np.inf, plan[..., 1])), (h, w))
-    legal, score, dist = [], [], []
+    big, dist = np.iinfo(np.int32).max, []
     for m in MOVES:
         r, c = agent + m
         ok = 0 <= r < h and 0 <= c < w and not known_obstacle[r, c]
         if ok and (r, c) == tuple(goal) and tuple(goal) != tuple(heading):
             ok = False
-        legal.append(ok)
-        score.append(plan[r, c, 0] if ok else -np.inf)
-        dist.append(abs(r - heading[0]) + abs(c - heading[1]))
-    marked = [legal[i] and score[i] > 0 for i in range(4)]
-    fresh = [marked[i] and not visited[tuple(agent + MOVES[i])] for i in range(4)]
-    use = fresh if any(fresh) else marked
-    if any(use):
-        return int(np.argmax([score[i] if use[i] else -np.inf for i in range(4)])), False
-    big = np.iinfo(np.int32).max
-    return int(np.argmin([dist[i] if legal[i] else big for i in range(4)])), True
+        dist.append(abs(r - heading[0]) + abs(c - heading[1]) if ok else big)
+    return int(np.argmin(dist)), True
 
 
 def goal_estimate_np(known_obstacle, visited, plan):

@@ -28,7 +28,10 @@ grid; as the field of view is at least one cell around the agent, it never colli
 ``GridTask(psi_kind="follow")`` is the paper's psi instead (:func:`psi_follow`): the move onto
 the neighbouring legal cell (on the grid, not a known obstacle) that the plan marks most
 strongly as path (path value > 0; cells already visited only when no other neighbour is
-marked), with no search over the map. Where no neighbour is marked the rollout plans again
+marked), with no search over the map. Where the drawn path forks at the agent's cell (the leg
+after the reference often passes beside it), the marks are read forward along each marked
+branch with this same rule (:func:`_branch_moves`), and the strongest branch that leads to the
+cell the plan heads for is taken. Where no neighbour is marked the rollout plans again
 once (``diffplan.rollouts.move``), and if the second plan marks none either, the agent steps
 greedily toward the cell the plan heads for (the legal neighbour nearest to it in moves,
 ignoring obstacles: no search); such fallback moves are counted. As in the search, while the
@@ -195,14 +198,10 @@ def unfollowable(state: env.State, plan, use_goal_channel: bool = True):
     return ~jnp.any(jnp.isfinite(score))
 
 
-def follow_moves(state: env.State, plan, use_goal_channel: bool = True):
-    """int32 (): the moves psi_follow would take along this plan (plan float32 (H, W, G)) from
-    the agent to the cell the plan heads for (:func:`goal_estimate`), replayed on what the
-    agent knows (unseen cells free) with every move onto an unvisited marked neighbour; -1
-    if it would not arrive that way within 2 (H + W) moves (it would stop beside unmarked
-    cells, step back onto its track, or walk off along another leg of the path). The rule is
-    psi_follow's own (:func:`_follow_candidates`), not a search over the map."""
-    targets = _follow_targets(state, plan, use_goal_channel)
+def _replay_moves(state: env.State, plan, use_goal_channel, targets):
+    """int32 (): moves from the agent to targets' heading taking, at every move, the unvisited
+    neighbour the plan marks most strongly (:func:`_follow_candidates`); -1 if that does not
+    arrive within 2 (H + W) moves."""
     heading = targets[0]
     h, w = state.grid.shape
 
@@ -215,18 +214,56 @@ def follow_moves(state: env.State, plan, use_goal_channel: bool = True):
         s = s.replace(agent=nxt, visited=s.visited | env._cell_mask(nxt, w))
         return (s, moves + go.astype(jnp.int32), arrived | jnp.all(nxt == heading)), None
 
-    start = (state, jnp.int32(0), jnp.bool_(False))
+    start = (state, jnp.int32(0), jnp.all(state.agent == heading))
     (_, moves, arrived), _ = jax.lax.scan(body, start, None, length=2 * (h + w))
     return jnp.where(arrived, moves, -1).astype(jnp.int32)
 
 
+def _branch_moves(state: env.State, plan, use_goal_channel, targets):
+    """(moves int32 (4,), score float32 (4,), cells, legal, heading): for each neighbour N, E,
+    S, W that psi_follow may step onto (score finite, :func:`_follow_candidates`), 1 + the
+    moves of :func:`_replay_moves` from there: the moves to the heading along that branch of
+    the plan's marks; -1 for a branch that does not arrive and for the other neighbours."""
+    cells, legal, score, heading, _ = _follow_candidates(state, plan, use_goal_channel, targets)
+    w = state.grid.shape[1]
+    inside = jnp.clip(cells, 0, jnp.array(state.grid.shape) - 1).astype(jnp.int32)
+
+    def from_cell(cell):
+        s = state.replace(agent=cell, visited=state.visited | env._cell_mask(cell, w))
+        return _replay_moves(s, plan, use_goal_channel, targets)
+
+    moves = jax.vmap(from_cell)(inside)
+    ok = jnp.isfinite(score) & (moves >= 0)
+    return jnp.where(ok, moves + 1, -1).astype(jnp.int32), score, cells, legal, heading
+
+
+def follow_moves(state: env.State, plan, use_goal_channel: bool = True):
+    """int32 (): the moves psi_follow would take along this plan (plan float32 (H, W, G)) from
+    the agent to the cell the plan heads for (:func:`goal_estimate`), replayed on what the
+    agent knows (unseen cells free): its first move onto the branch of the plan's marks that
+    arrives soonest (:func:`_branch_moves`), then every move onto the unvisited neighbour
+    marked most strongly; -1 if no branch arrives that way within 2 (H + W) moves (psi would
+    stop beside unmarked cells, step back onto its track, or walk off along another leg of
+    the path). The rule is psi_follow's own, not a search over the map."""
+    targets = _follow_targets(state, plan, use_goal_channel)
+    moves = _branch_moves(state, plan, use_goal_channel, targets)[0]
+    big = jnp.iinfo(jnp.int32).max
+    best = jnp.min(jnp.where(moves >= 0, moves, big))
+    return jnp.where(best < big, best, -1).astype(jnp.int32)
+
+
 def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
     """The paper's psi: the move (int32 () in 0..3) onto the legal neighbour the plan marks
-    most strongly as path (ties to the lowest move index N, E, S, W); where none is marked, the
+    most strongly as path (ties to the lowest move index N, E, S, W), among the marked
+    neighbours from which the plan's marks lead on to the cell it heads for
+    (:func:`_branch_moves`) if there are any: where the drawn path forks (its leg after the
+    reference passing beside the agent), the branch that arrives; where none is marked, the
     legal neighbour nearest (in moves, obstacles ignored) to the cell the plan heads for (move
     0 if no neighbour is legal). See the module docstring."""
-    cells, legal, score, heading, _ = _follow_candidates(state, plan, use_goal_channel)
-    follow = jnp.argmax(score)
+    targets = _follow_targets(state, plan, use_goal_channel)
+    moves, score, cells, legal, heading = _branch_moves(state, plan, use_goal_channel, targets)
+    arriving = jnp.where(moves >= 0, score, -jnp.inf)
+    follow = jnp.where(jnp.any(moves >= 0), jnp.argmax(arriving), jnp.argmax(score))
     distance = jnp.abs(cells - heading[None, :]).sum(-1)
     greedy = jnp.argmin(jnp.where(legal, distance, jnp.iinfo(jnp.int32).max))
     return jnp.where(jnp.isfinite(score[follow]), follow, greedy).astype(jnp.int32)
