@@ -29,6 +29,11 @@ contains (every word of it occurs in a training phrasing: new wording, not new w
 TRAINING = "mixed"
 """The phrasing of training examples (not an evaluation language): canonical half of the time,
 otherwise a uniformly drawn training paraphrase (:meth:`TemplateSplit.pool`)."""
+BROAD = "broad"
+"""A training-only phrasing (not an evaluation language): a uniformly drawn training paraphrase
+or training-only extra phrasing (:attr:`TemplateSplit.extra`), so that a denoiser can be
+trained on more word orders while the ``paraphrased`` and ``unseen`` evaluation rows keep the
+phrasings they always had."""
 
 _WORD_RE = re.compile(r"\{[a-z]+\}|[a-z]+|[.,]|[^\sa-z.,]+")
 
@@ -162,13 +167,17 @@ class TemplateSplit:
     """Which phrasings of one sentence kind are canonical, trained on, or held out.
 
     templates: the phrasings (template 0 canonical); unseen: the indices held out of training
-    (a fixed third, never 0). Raises ValueError if a held-out phrasing has a word (slots
-    excepted) that no training phrasing has, or if the indices are out of range.
+    (a fixed third, never 0); extra: indices of training-only phrasings, drawn only by the
+    :data:`BROAD` training language (never by an evaluation language), each made of the
+    training phrasings' words (so that adding them leaves the vocabulary as it was). Raises
+    ValueError if a held-out or extra phrasing has a word (slots excepted) that no training
+    phrasing has, or if the indices are out of range or overlap.
     """
 
     templates: tuple[str, ...]
     unseen: tuple[int, ...]
     slots: tuple[str, ...] = ()
+    extra: tuple[int, ...] = ()
 
     def __post_init__(self):
         n = len(self.templates)
@@ -176,17 +185,24 @@ class TemplateSplit:
             raise ValueError("templates must be distinct")
         if not all(0 < i < n for i in self.unseen) or len(set(self.unseen)) != len(self.unseen):
             raise ValueError(f"unseen must be distinct indices in 1..{n - 1}, got {self.unseen}")
+        if not all(0 < i < n for i in self.extra) or len(set(self.extra)) != len(self.extra) \
+                or set(self.extra) & set(self.unseen):
+            raise ValueError(f"extra must be distinct indices in 1..{n - 1}, none held out, got "
+                             f"{self.extra}")
         known = self.training_words()
-        for i in self.unseen:
-            new = sorted(template_words([self.templates[i]], self.slots) - known)
-            if new:
-                raise ValueError(f"held-out phrasing {self.templates[i]!r} has words no training "
-                                 f"phrasing has: {new}")
+        for kind, indices in (("held-out", self.unseen), ("extra", self.extra)):
+            for i in indices:
+                new = sorted(template_words([self.templates[i]], self.slots) - known)
+                if new:
+                    raise ValueError(f"{kind} phrasing {self.templates[i]!r} has words no "
+                                     f"training phrasing has: {new}")
 
     @property
     def training(self) -> tuple[int, ...]:
-        """Template indices training draws from (canonical and the training paraphrases)."""
-        return tuple(i for i in range(len(self.templates)) if i not in self.unseen)
+        """Template indices training draws from in every training language (canonical and the
+        training paraphrases; the extra phrasings are not among them)."""
+        return tuple(i for i in range(len(self.templates))
+                     if i not in self.unseen and i not in self.extra)
 
     def training_words(self) -> set[str]:
         """Every word of the training phrasings (slots excepted): the vocabulary they need,
@@ -196,19 +212,26 @@ class TemplateSplit:
     def pool(self, language: str) -> np.ndarray:
         """int32 (P,) template indices an episode of ``language`` draws from uniformly
         (LANGUAGES, or TRAINING: template 0 repeated once per training paraphrase, then the
-        paraphrases, so that half of the draws are canonical)."""
+        paraphrases, so that half of the draws are canonical; or BROAD: the training
+        paraphrases and the extra phrasings)."""
         paraphrases = [i for i in self.training if i != 0]
         pools = {"canonical": [0], "paraphrased": paraphrases, "unseen": list(self.unseen),
-                 TRAINING: [0] * len(paraphrases) + paraphrases}
+                 TRAINING: [0] * len(paraphrases) + paraphrases,
+                 BROAD: paraphrases + list(self.extra)}
         if language not in pools:
             raise ValueError(f"unknown language {language!r}; expected one of "
-                             f"{LANGUAGES + (TRAINING,)}")
+                             f"{LANGUAGES + TRAINING_ONLY}")
         return np.asarray(pools[language], np.int32)
 
 
+TRAINING_ONLY = (TRAINING, BROAD)
+"""Phrasings only training draws (never an evaluation row)."""
+
+
 def check_language(language: str, training: bool = True) -> str:
-    """language if it is one of LANGUAGES (or TRAINING when ``training``), else ValueError."""
-    allowed = LANGUAGES + ((TRAINING,) if training else ())
+    """language if it is one of LANGUAGES (or TRAINING_ONLY when ``training``), else
+    ValueError."""
+    allowed = LANGUAGES + (TRAINING_ONLY if training else ())
     if language not in allowed:
         raise ValueError(f"unknown language {language!r}; expected one of {allowed}")
     return language

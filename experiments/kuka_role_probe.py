@@ -145,6 +145,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--extra", action="append", default=[], metavar="TEMPLATE",
                         help="an added training phrasing with the slots {top} and {bottom}, "
                              "made of the training phrasings' words; repeatable")
+    parser.add_argument("--broad", action="store_true",
+                        help="also train on the grammar's training-only extra phrasings "
+                             "(envs.kuka.grammar.EXTRA, what the 'broad' training language "
+                             "draws)")
     parser.add_argument("--seeds", default="0,1,2",
                         help="comma-separated tagger seeds, one tagger each (default 0,1,2)")
     parser.add_argument("--steps", type=int, default=STEPS,
@@ -162,17 +166,19 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    from envs.kuka import grammar
+
     seeds = list(harness.parse_seeds(parser, args))
     try:
-        extra = check_extra(args.extra)
+        broad = ([grammar.RELATION_TEMPLATES[k] for k in grammar.EXTRA] if args.broad
+                 else [])
+        extra = check_extra(broad + [t for t in args.extra if t not in broad])
         language.check_dropout_rate(args.word_dropout, "--word-dropout")
     except ValueError as e:
         parser.error(str(e))
     cli.check_at_least(parser, "--steps", args.steps, 1)
     cli.check_output_file(parser, "--json", args.json)
     from tqdm import tqdm
-
-    from envs.kuka import grammar
 
     split = grammar.RELATION_SPLIT
     train = compiled([grammar.RELATION_TEMPLATES[k] for k in split.training] + extra)

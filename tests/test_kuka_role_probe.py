@@ -52,3 +52,10 @@ def test_a_tiny_run_writes_its_table_and_json(tmp_path, capsys):
         assert 0.0 <= row[key] <= 100.0
     out = capsys.readouterr().out
     assert "#11" in out and "taggers that read every held-out phrasing" in out
+
+
+def test_broad_trains_on_the_grammar_extras_once():
+    extras = [grammar.RELATION_TEMPLATES[k] for k in grammar.EXTRA]
+    result = probe.main(["--seeds", "0", "--steps", "2", "--broad", "--extra", extras[0],
+                         "--no-progress"])
+    assert result["extra"] == extras

@@ -25,7 +25,7 @@ ALL_SPLITS = {**{f"grid/{s}": grid_grammar.SPLITS[s] for s in SETTINGS},
 @pytest.mark.parametrize("name", sorted(ALL_SPLITS))
 def test_a_third_held_out_made_of_training_words(name):
     split = ALL_SPLITS[name]
-    n = len(split.templates)
+    n = len(split.templates) - len(split.extra)  # the phrasings evaluation rows draw
     assert len(split.unseen) == n // 3 and 0 not in split.unseen
     training_words = language.template_words([split.templates[i] for i in split.training],
                                              split.slots)
@@ -71,10 +71,13 @@ def test_pools(name):
     assert split.pool("canonical").tolist() == [0]
     paraphrased = split.pool("paraphrased").tolist()
     assert 0 not in paraphrased and not set(paraphrased) & set(split.unseen)
-    assert sorted(paraphrased + [0] + list(split.unseen)) == list(range(len(split.templates)))
+    assert sorted(paraphrased + [0] + list(split.unseen) + list(split.extra)) == \
+        list(range(len(split.templates)))
     assert split.pool("unseen").tolist() == list(split.unseen)
     mixed = split.pool(language.TRAINING)
     assert (mixed == 0).mean() == 0.5 and not set(mixed.tolist()) & set(split.unseen)
+    assert not set(mixed.tolist()) & set(split.extra)
+    assert split.pool(language.BROAD).tolist() == paraphrased + list(split.extra)
     with pytest.raises(ValueError, match="klingon"):
         split.pool("klingon")
 
@@ -241,6 +244,52 @@ def test_no_held_out_phrasing_in_a_kuka_training_batch():
     assert ("relation", 0) in found and any(k == "relation" and i > 0 for k, i in found)
     with pytest.raises(ValueError, match="held-out"):
         Recipe(specs=(TaskSpec("stacking", False, "unseen"),))
+
+
+def test_a_broad_kuka_training_batch_draws_the_extras_and_no_held_out_phrasing():
+    """The "broad" training language adds the extra relation phrasings; evaluation rows
+    (paraphrased, unseen) never draw them, and they leave the vocabulary as it was."""
+    import dataclasses
+
+    from envs.kuka.config import COLUMNS
+    from envs.kuka.episode import generate
+    from envs.kuka.training import SPECS, Recipe
+
+    specs = tuple(dataclasses.replace(s, language="broad") if s.language == "paraphrased"
+                  else s for s in SPECS)
+    batch_fn = jax.jit(Recipe(specs=specs).batch_fn(), static_argnums=1)
+    tokens = np.asarray(batch_fn(jax.random.PRNGKey(0), 8 * len(specs)).tokens)
+    found = [t for row in tokens for t in kuka_grammar.sentence_templates(row)]
+    assert None not in found
+    relations = {i for kind, i in found if kind == "relation"}
+    assert relations & set(kuka_grammar.EXTRA) and relations & {1, 2, 3, 4, 5, 6, 7}
+    assert not relations & set(kuka_grammar.RELATION_SPLIT.unseen)
+    keys = jax.random.split(jax.random.PRNGKey(2), 32)
+    for spec in COLUMNS.values():
+        for phrasing in ("paraphrased", "unseen"):
+            spec = dataclasses.replace(spec, language=phrasing)
+            rows = np.asarray(jax.vmap(lambda k: generate(k, spec).tokens)(keys))
+            for row in rows:
+                assert not {i for kind, i in kuka_grammar.sentence_templates(row)
+                            if kind == "relation"} & set(kuka_grammar.EXTRA)
+    extra_words = language.template_words(
+        [kuka_grammar.RELATION_TEMPLATES[i] for i in kuka_grammar.EXTRA], kuka_grammar.SLOTS)
+    assert extra_words <= set(kuka_grammar.VOCAB)
+
+
+def test_template_split_refuses_bad_extras():
+    templates = ("go to the {x} .", "walk to the {x} .", "go walk to the {x} .",
+                 "to the {x} go .")
+    language.TemplateSplit(templates, (2,), ("{x}",), (3,))
+    with pytest.raises(ValueError, match="extra must be distinct"):
+        language.TemplateSplit(templates, (2,), ("{x}",), (2,))
+    with pytest.raises(ValueError, match="extra must be distinct"):
+        language.TemplateSplit(templates, (2,), ("{x}",), (0,))
+    with pytest.raises(ValueError, match=r"extra phrasing .* \['run'\]"):
+        language.TemplateSplit(templates + ("run to the {x} .",), (2,), ("{x}",), (4,))
+    split = language.TemplateSplit(templates, (2,), ("{x}",), (3,))
+    assert list(split.pool("paraphrased")) == [1] and list(split.pool("broad")) == [1, 3]
+    assert list(split.pool("mixed")) == [0, 1] and list(split.pool("unseen")) == [2]
 
 
 def test_kuka_unseen_episodes_use_held_out_phrasings_only():

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from diffplan import language
 from envs.kuka import grammar
 
 MAX_RELATIONS = grammar.MAX_RELATIONS
@@ -27,7 +28,8 @@ class TaskSpec:
     """A task (hashable; pass as a static argument). kind: "stacking" or "rearrangement";
     multi: several instructed relations (3 stacking, 2 rearrangement) or one; language:
     "canonical", "paraphrased" or "unseen" (grammar.LANGUAGES: the held-out phrasings that
-    training never sees)."""
+    training never sees), or for training only "broad" (the training paraphrases and the
+    extra phrasings, grammar.EXTRA)."""
 
     kind: str
     multi: bool = False
@@ -36,9 +38,9 @@ class TaskSpec:
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"unknown task kind {self.kind!r}; expected one of {KINDS}")
-        if self.language not in grammar.LANGUAGES:
-            raise ValueError(f"unknown language {self.language!r}; expected one of "
-                             f"{grammar.LANGUAGES}")
+        allowed = grammar.LANGUAGES + (language.BROAD,)
+        if self.language not in allowed:
+            raise ValueError(f"unknown language {self.language!r}; expected one of {allowed}")
 
     @property
     def name(self) -> str:

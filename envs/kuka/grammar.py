@@ -34,10 +34,24 @@ RELATION_TEMPLATES: tuple[str, ...] = (
     "The {bottom} block should be below the {top} block.",
     "Move the {top} block onto the {bottom} block.",
     "Set the {bottom} block under the {top} block.",
+    # training-only extras (12-18, drawn by the "broad" training language only): every opening
+    # frame in both orders, every preposition in two frames, so that no verb fixes the order
+    "Stack the {bottom} block below the {top} block.",
+    "Place the {bottom} block beneath the {top} block.",
+    "Set the {bottom} block below the {top} block.",
+    "The {top} block goes on top of the {bottom} block.",
+    "Move the {bottom} block under the {top} block.",
+    "The {top} block should be above the {bottom} block.",
+    "Place the {top} block onto the {bottom} block.",
 )
-"""One relation "top on bottom"; 0 is canonical, 1-7 the training paraphrases, 8-11 held out.
-Templates 2, 4, 7, 9 and 11 invert the preposition (name the lower block first)."""
-INVERTED = (2, 4, 7, 9, 11)
+"""One relation "top on bottom"; 0 is canonical, 1-7 the training paraphrases, 8-11 held out,
+12-18 training-only extras (:data:`EXTRA`). Templates 2, 4, 7, 9, 11, 12, 13, 14 and 16 invert
+the preposition (name the lower block first)."""
+INVERTED = (2, 4, 7, 9, 11, 12, 13, 14, 16)
+EXTRA = tuple(range(12, 19))
+"""Relation phrasings only the ``broad`` training language draws (``diffplan.language.BROAD``):
+the ``paraphrased`` and ``unseen`` evaluation rows never contain them, and they add no word, so
+the vocabulary (and every checkpoint's) is the same with or without them."""
 
 TOWER_TEMPLATES: tuple[str, ...] = (
     "Build a tower of all four blocks.",
@@ -55,7 +69,7 @@ LANGUAGES = language.LANGUAGES
 """canonical: every sentence in its template 0; paraphrased: every sentence in a uniformly drawn
 training paraphrase (never template 0); unseen: every sentence in a uniformly drawn held-out
 phrasing (:data:`RELATION_SPLIT`, :data:`TOWER_SPLIT`)."""
-RELATION_SPLIT = language.TemplateSplit(RELATION_TEMPLATES, (8, 9, 10, 11), SLOTS)
+RELATION_SPLIT = language.TemplateSplit(RELATION_TEMPLATES, (8, 9, 10, 11), SLOTS, EXTRA)
 TOWER_SPLIT = language.TemplateSplit(TOWER_TEMPLATES, (4, 5), SLOTS)
 """A third of each sentence kind's phrasings is held out of training (every word of them occurs
 in a training phrasing, so the vocabulary is that of the training phrasings)."""
@@ -98,9 +112,11 @@ def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canoni
     constraints: int32 (MAX_RELATIONS, 2) (top, bottom) block indices, -1 rows are absent;
     tower_sentence: bool () starts with the tower sentence; phrasing (static, LANGUAGES): each
     sentence in its canonical phrasing, or in one drawn uniformly from the training paraphrases
-    or from the held-out phrasings.
+    or from the held-out phrasings; or (training only) "broad": the training paraphrases and
+    the extras (:data:`EXTRA`).
     """
-    language.check_language(phrasing, training=False)
+    if phrasing != language.BROAD:
+        language.check_language(phrasing, training=False)
     k_tower, k_rel = jax.random.split(key)
     constraints = jnp.asarray(constraints)
     tower = jnp.asarray(TOWERS)[language.draw_template(k_tower, TOWER_SPLIT.pool(phrasing))]
