@@ -251,4 +251,5 @@ def test_follow_moves_matches_a_numpy_replay(seed, density):
                           visited=state.visited | jnp.asarray(rng.random((16, 16)) < 0.05))
     plan = rng.uniform(-1, 1, (16, 16, 3)).astype(np.float32)
     plan[..., 0] = np.where(rng.random((16, 16)) < density, np.abs(plan[..., 0]), -1.0)
-    assert int(follow_moves(state, jnp.asarray(plan))) == _numpy_follow_moves(state, plan)
+    assert int(jax.jit(follow_moves)(state, jnp.asarray(plan))) == \
+        _numpy_follow_moves(state, plan)

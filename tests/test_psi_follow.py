@@ -69,8 +69,8 @@ def test_follow_matches_a_numpy_oracle(i, seed, shift):
     state = state.replace(visited=jnp.asarray(visited))
     want, fell_back = _numpy_follow(np.asarray(state.grid), np.asarray(state.seen), visited,
                                     np.asarray(state.agent), plan)
-    assert int(psi_follow(state, jnp.asarray(plan))) == want
-    assert bool(unfollowable(state, jnp.asarray(plan))) == fell_back
+    assert int(jax.jit(psi_follow)(state, jnp.asarray(plan))) == want
+    assert bool(jax.jit(unfollowable)(state, jnp.asarray(plan))) == fell_back
 
 
 def test_follow_never_enters_a_known_obstacle():

@@ -129,8 +129,8 @@ def test_a_task_without_plan_refuted_refuses_the_trigger(p_mo2g_episodes):
 
 def test_a_follow_plan_is_dropped_where_its_path_would_not_take_the_agent_there():
     """With psi_kind "follow" a kept plan is also refuted where psi, replaying its marks, would
-    not arrive where it heads: no unvisited neighbour marked (it would walk the agent back over
-    its own track), a gap, or a marked neighbour already visited."""
+    not arrive where it heads: no neighbour marked, or a gap. Where the only marked neighbour
+    was visited, psi steps back onto it, and the plan stands if the marks lead on from there."""
     task = GridTask(make_config("p_mo2g"), psi_kind="follow")
     plan = _point_plan(goal=(9, 9), subgoal=(9, 9))
     state = _state((5, 5), target=(9, 9), reference=(0, 1), reached=True)
@@ -140,4 +140,5 @@ def test_a_follow_plan_is_dropped_where_its_path_would_not_take_the_agent_there(
     assert not bool(task.plan_refuted(state, ahead))
     assert bool(task.plan_refuted(state, ahead.at[7, 9, 0].set(-1.0)))  # a gap
     behind = state.replace(visited=state.visited.at[5, 6].set(True))
-    assert bool(task.plan_refuted(behind, ahead))
+    assert not bool(task.plan_refuted(behind, ahead))
+    assert bool(task.plan_refuted(behind, ahead.at[7, 9, 0].set(-1.0)))

@@ -204,18 +204,22 @@ def _replay_moves(state: env.State, plan, use_goal_channel, targets):
     arrive within 2 (H + W) moves."""
     heading = targets[0]
     h, w = state.grid.shape
+    limit = 2 * (h + w)
 
-    def body(carry, _):
-        # Where psi cannot step on (nothing ahead), the state stays and so it stays put.
-        s, moves, arrived = carry
+    def walking(carry):
+        _, moves, arrived, stuck = carry
+        return ~arrived & ~stuck & (moves < limit)
+
+    def body(carry):
+        # Where psi cannot step on (nothing ahead) the walk ends: it would stay put.
+        s, moves, _, _ = carry
         cells, _, score, _, ahead = _follow_candidates(s, plan, use_goal_channel, targets)
-        go = ~arrived & ahead
-        nxt = jnp.where(go, cells[jnp.argmax(score)], s.agent).astype(jnp.int32)
+        nxt = jnp.where(ahead, cells[jnp.argmax(score)], s.agent).astype(jnp.int32)
         s = s.replace(agent=nxt, visited=s.visited | env._cell_mask(nxt, w))
-        return (s, moves + go.astype(jnp.int32), arrived | jnp.all(nxt == heading)), None
+        return s, moves + ahead.astype(jnp.int32), jnp.all(nxt == heading), ~ahead
 
-    start = (state, jnp.int32(0), jnp.all(state.agent == heading))
-    (_, moves, arrived), _ = jax.lax.scan(body, start, None, length=2 * (h + w))
+    start = (state, jnp.int32(0), jnp.all(state.agent == heading), jnp.bool_(False))
+    _, moves, arrived, _ = jax.lax.while_loop(walking, body, start)
     return jnp.where(arrived, moves, -1).astype(jnp.int32)
 
 
