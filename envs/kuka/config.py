@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 
-from diffplan import language
 from envs.kuka import grammar
 
 MAX_RELATIONS = grammar.MAX_RELATIONS
@@ -38,9 +37,7 @@ class TaskSpec:
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"unknown task kind {self.kind!r}; expected one of {KINDS}")
-        allowed = grammar.LANGUAGES + (language.BROAD,)
-        if self.language not in allowed:
-            raise ValueError(f"unknown language {self.language!r}; expected one of {allowed}")
+        grammar.check_phrasing(self.language)
 
     @property
     def name(self) -> str:

@@ -93,6 +93,18 @@ RELATIONS = np.stack([VOCABULARY.compile(t, SLOTS, SENTENCE_TOKENS) for t in REL
 TOWERS = np.stack([VOCABULARY.compile(t, SLOTS, SENTENCE_TOKENS) for t in TOWER_TEMPLATES])
 
 
+EPISODE_LANGUAGES = LANGUAGES + (language.BROAD,)
+"""What an episode's instruction may be phrased in: an evaluation language, or the training
+language ``broad``."""
+
+
+def check_phrasing(phrasing: str) -> str:
+    """phrasing if it is one of EPISODE_LANGUAGES, else ValueError naming them."""
+    if phrasing not in EPISODE_LANGUAGES:
+        raise ValueError(f"unknown language {phrasing!r}; expected one of {EPISODE_LANGUAGES}")
+    return phrasing
+
+
 def block_token(block):
     """Token id of block index i (0 red .. 3 yellow; ints, numpy or jax arrays)."""
     return block + 1
@@ -115,8 +127,7 @@ def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canoni
     or from the held-out phrasings; or (training only) "broad": the training paraphrases and
     the extras (:data:`EXTRA`).
     """
-    if phrasing != language.BROAD:
-        language.check_language(phrasing, training=False)
+    check_phrasing(phrasing)
     k_tower, k_rel = jax.random.split(key)
     constraints = jnp.asarray(constraints)
     tower = jnp.asarray(TOWERS)[language.draw_template(k_tower, TOWER_SPLIT.pool(phrasing))]
