@@ -150,3 +150,15 @@ def check_baselines(parser: argparse.ArgumentParser, names: str | None, known, r
         parser.error(f"no shipped baseline checkpoint for {','.join(missing)} under {root}: "
                      f"make them with `{make}`")
     return chosen
+
+
+def add_tagger_flags(parser: argparse.ArgumentParser, *, seeds: str, steps: int, batch: int,
+                     unit: str) -> None:
+    """--seeds (one text tagger per seed) and --steps (per tagger, of batch ``unit``), with
+    --json and --no-progress: the flags of the CLIs that train taggers."""
+    parser.add_argument("--seeds", default=seeds,
+                        help=f"comma-separated tagger seeds, one tagger each (default {seeds})")
+    parser.add_argument("--steps", type=int, default=steps,
+                        help=f"training steps of {batch} {unit} per tagger (default {steps})")
+    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")

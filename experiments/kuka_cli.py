@@ -5,9 +5,8 @@ of the kind's single- and multi-constraint tasks under MJX physics, measure succ
 final physical block poses, print a table and write JSON (contract 2 of docs/DESIGN.md), the
 final states (contract 4), figures and videos.
 
-Seeds: see experiments.harness and experiments.kuka_eval. Every choice (model, training, psi,
-step counts) was made on the validation seed 1000; the README reports the evaluation seeds
-2001-2003. Training draws its examples from another key stream (envs.kuka.training).
+Seeds: experiments.harness and experiments.kuka_eval. Choices were made on validation seed
+1000; the README reports seeds 2001-2003. Training draws from another key stream.
 """
 from __future__ import annotations
 
@@ -72,6 +71,7 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
     pooled over the seeds (mode None: the expert), then of every --baselines policy (mode
     its method name)."""
     rows, finals = {}, {}
+    reader = ks.load_reader(args.reader) if args.reader else None
     if denoiser is not None:
         from diffplan.planner import PlannerConfig
 
@@ -83,14 +83,15 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
         if denoiser is not None:
             planner, run = runs[mode]
             act = functools.partial(ke.run_planner, task, planner, batch=args.batch_size,
-                                    bar=bar, run=run, settle=args.settle)
+                                    bar=bar, run=run, settle=args.settle, reader=reader)
         elif args.policy == "expert":
             def act(eps, seed):
                 return ke.run_expert(eps, args.batch_size, bar, settle=args.settle)
         else:  # a baseline
             _, act = _baseline_actor(args, args.policy, bar)
         out = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
-            mode, spec.multi, spec.language, ks.policy_name(args.policy)), mode, mode)
+            mode, spec.multi, spec.language, ks.policy_name(args.policy), reader is not None),
+            mode, mode)
         rows.update(out[0])
         finals.update(out[1])
     for name in args.baselines:
@@ -226,7 +227,7 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
         "policy": args.policy, "language": args.language,
         "modes": [m for m in modes if m is not None], "baselines": list(args.baselines),
         "checkpoint": os.path.relpath(checkpoint, harness.REPO_ROOT) if checkpoint else None,
-        "num_steps": args.num_steps if planner_policy else None,
+        "num_steps": args.num_steps if planner_policy else None, "reader": args.reader,
         "carry": args.carry if planner_policy else None, "settle_seconds": args.settle,
         "train_seconds": train_seconds, "states_method": main_row["method"],
         "paper": {name: dict(zip(("single", "multi"), values))

@@ -81,19 +81,24 @@ def run_expert(episodes, batch: int, bar=None, settle: float = SETTLE_SECONDS):
 
 
 def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=None,
-                settle: float = SETTLE_SECONDS):
+                settle: float = SETTLE_SECONDS, reader=None):
     """The planner on every episode with diffplan.rollout, in calls of `batch` episodes (the
     last padded to the compiled size), the blocks then left to settle for ``settle`` simulated
     seconds. Returns the final physical states (as :func:`run_expert`, without frames) plus
     denoiser_calls and num_plans (n,). run: the jitted (planner, keys, episodes, token) ->
-    Rollout (default harness.rollout_fn(task)).
+    Rollout (default harness.rollout_fn(task)). reader: (ReaderConfig, params) of a reader
+    that restates each instruction canonically before the planner reads it (envs.kuka.reader).
 
     Not the slot pool (diffplan.rollout_stream): its jitted program, with a physics reset and
     a pick-and-place in one loop body, needed more than 7 GB of memory to compile here (the
     batched rollout ~4.8 GB); a batch ends with its slowest episode, at most 6 placements."""
+    from envs.kuka.reader import restate_jit
+
     run = rollout_fn(task) if run is None else run
 
     def run_batch(idx, chunk):
+        if reader is not None:
+            chunk = chunk.replace(tokens=restate_jit(*reader, chunk.tokens))
         out = run(planner, planner_keys(seed, idx), chunk, 0)
         return dict(at_rest(out.final_state, settle), denoiser_calls=out.denoiser_calls,
                     num_plans=out.num_plans)

@@ -3,6 +3,7 @@ before any work: a user error ends in one line on stderr, exit code 2."""
 from __future__ import annotations
 
 import argparse
+import os
 
 from envs.kuka.env import SETTLE_SECONDS
 from experiments import cli, harness, kuka_baselines
@@ -42,6 +43,11 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
     cli.add_training_flags(p, training_name=TRAINING_NAME, served="both Kuka experiments",
                            train_steps=TRAIN_STEPS, checkpoint_every=CHECKPOINT_EVERY,
                            model_sizes=MODEL_SIZES)
+    p.add_argument("--reader", metavar="DIR",
+                   help="restate every instruction canonically before the planner reads it, "
+                        "with a reader (taggers of which block is the upper one, trained on "
+                        "the training phrasings only: python -m experiments.train_reader); "
+                        "its rows say 'read'")
     p.add_argument("--num-steps", type=int, default=NUM_STEPS,
                    help=f"denoising steps per plan (default {NUM_STEPS})")
     p.add_argument("--carry", choices=CARRIES, default="path",
@@ -90,8 +96,12 @@ MAX_SETTLE = 10.0
 def check_args(parser, args) -> tuple[str, ...]:
     """Validates the arguments (one-line errors before any work); returns the modes."""
     cli.check_training_flags(parser, args, TRAIN_FLAGS)
-    if args.policy != "planner" and (args.train or args.checkpoint):
-        parser.error("--train and --checkpoint only make sense with --policy planner")
+    if args.policy != "planner" and (args.train or args.checkpoint or args.reader):
+        parser.error("--train, --checkpoint and --reader only make sense with --policy "
+                     "planner")
+    if args.reader and not os.path.isdir(args.reader):
+        parser.error(f"--reader {args.reader!r} is not a directory (write one with python -m "
+                     "experiments.train_reader --out DIR)")
     if args.policy in KUKA_BASELINES:
         if args.figures or args.video:
             parser.error("--figures and --video draw the planner or the expert, not a "

@@ -77,60 +77,34 @@ def role_batch(key, templates, n: int):
     return tokens, bottom.astype(jnp.int32), bottom | (tokens == slots[:, 0:1])
 
 
-def _tagger():
-    import flax.linen as nn
-    from diffplan.text_encoder import TextEncoder
-    from envs.kuka import grammar
-
-    class Tagger(nn.Module):
-        @nn.compact
-        def __call__(self, tokens):
-            x, _ = TextEncoder(len(grammar.VOCAB), grammar.SENTENCE_TOKENS, dim=64,
-                               num_layers=2, num_heads=4)(tokens)
-            return nn.Dense(len(grammar.ROLES))(x)
-
-    return Tagger()
-
-
 def train_and_read(seed: int, train, held_out, steps: int, word_dropout: float):
     """(training-phrasing rate, [rate of each held-out template]) in percent of sentences
-    read right, for a tagger trained ``steps`` steps of BATCH sentences from seed."""
+    read right, for a tagger (``diffplan.reader.Tagger`` over one sentence) trained ``steps``
+    steps of BATCH sentences from seed."""
     import jax
     import jax.numpy as jnp
-    import optax
     from diffplan import language
+    from diffplan.reader import ReaderConfig, Tagger, train_tagger
     from envs.kuka import grammar, scene
 
     language.check_dropout_rate(word_dropout)
     block_words = grammar.block_token(jnp.arange(scene.NUM_BLOCKS))
-    model = _tagger()
-    key = jax.random.PRNGKey(seed)
-    params = model.init(key, jnp.zeros((1, train.shape[1]), jnp.int32))
-    opt = optax.adam(1e-3)
-    opt_state = opt.init(params)
+    config = ReaderConfig(len(grammar.VOCAB), grammar.SENTENCE_TOKENS, len(grammar.ROLES))
 
-    @jax.jit
-    def step(params, opt_state, key):
+    def batch(key):
         tokens, roles, named = role_batch(key, train, BATCH)
         if word_dropout:
             tokens = language.drop_words(jax.random.fold_in(key, 1), tokens, word_dropout,
                                          block_words)
+        return tokens, roles, named
 
-        def loss(p):
-            ce = optax.softmax_cross_entropy_with_integer_labels(model.apply(p, tokens), roles)
-            return (ce * named).sum() / named.sum()
-
-        grads = jax.grad(loss)(params)
-        updates, opt_state = opt.update(grads, opt_state)
-        return optax.apply_updates(params, updates), opt_state
-
-    for i in range(steps):
-        params, opt_state = step(params, opt_state, jax.random.fold_in(key, i + 1))
+    params = train_tagger(config, batch, seed, steps)
 
     def rate(templates):
         tokens, roles, named = role_batch(jax.random.PRNGKey(10_000 + seed), templates,
                                           EVAL_SENTENCES)
-        right = jnp.where(named, model.apply(params, tokens).argmax(-1) == roles, True)
+        read = Tagger(config).apply(params, tokens).argmax(-1)
+        right = jnp.where(named, read == roles, True)
         return 100.0 * float(jnp.all(right, -1).mean())
 
     return rate(train), [rate(held_out[j:j + 1]) for j in range(held_out.shape[0])]
@@ -149,15 +123,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also train on the grammar's training-only extra phrasings "
                              "(envs.kuka.grammar.EXTRA, what the 'broad' training language "
                              "draws)")
-    parser.add_argument("--seeds", default="0,1,2",
-                        help="comma-separated tagger seeds, one tagger each (default 0,1,2)")
-    parser.add_argument("--steps", type=int, default=STEPS,
-                        help=f"training steps of {BATCH} sentences per tagger (default {STEPS})")
     parser.add_argument("--word-dropout", type=float, default=0.0,
                         help="probability that a non-block word of a training sentence is "
                              "dropped (default 0)")
-    parser.add_argument("--json", metavar="PATH", help="write the results as JSON")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    cli.add_tagger_flags(parser, seeds="0,1,2", steps=STEPS, batch=BATCH, unit="sentences")
     return parser
 
 

@@ -117,12 +117,15 @@ def load_checked(checkpoint: str, num_steps: int, kind: str):
                 lambda denoiser: mismatch(denoiser, num_steps), grammar.VOCAB)
 
 
-def label(mode: str | None, multi: bool, language: str, policy: str) -> str:
+def label(mode: str | None, multi: bool, language: str, policy: str, read: bool = False
+          ) -> str:
     """A row's method: who acts (the planner and how it plans; mode None: policy, e.g. the
-    expert or a baseline's method name), which column, which phrasing."""
+    expert or a baseline's method name), which column, which phrasing (", read": restated
+    canonically by a reader first)."""
     who = policy if mode is None else f"planner {METHOD_NAMES[mode]}"
     what = "multi-constraint" if multi else "single constraint"
-    return f"{who}, {what}" + (f", {language}" if language != "canonical" else "")
+    return f"{who}, {what}" + (f", {language}" if language != "canonical" else "") + (
+        ", read" if read else "")
 
 
 def policy_name(policy: str) -> str:
@@ -130,3 +133,21 @@ def policy_name(policy: str) -> str:
     from diffplan.baselines.policies import METHOD_NAMES
 
     return METHOD_NAMES.get(policy, policy)
+
+
+def load_reader(directory: str):
+    """(ReaderConfig, params) of a reader directory (``diffplan.reader.load_reader``), checked
+    to be the Kuka world's (its tagger's vocabulary and instruction length); SystemExit with
+    one line otherwise."""
+    from diffplan.reader import load_reader as load
+    from envs.kuka.reader import reader_config
+
+    try:
+        config, params, _ = load(directory)
+    except (OSError, ValueError, KeyError) as e:
+        raise SystemExit(f"--reader {directory!r}: {e}") from None
+    if config != reader_config(**{k: getattr(config, k) for k in ("dim", "num_layers",
+                                                                    "num_heads")}):
+        raise SystemExit(f"--reader {directory!r} was trained for another vocabulary or "
+                         f"instruction length ({config}), not the Kuka world's")
+    return config, params
