@@ -208,8 +208,8 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     bar.close()
     main_mode, main_language = modes[0], languages[0]
     main_specs = [s for s in specs if s.language == main_language]
-    main_name = (ks.policy_name(args.policy) if not planner_policy
-                 else f"planner {ks.METHOD_NAMES[main_mode]}")
+    main_name = (ks.policy_name(args.policy) if not planner_policy else
+                 f"planner {ks.METHOD_NAMES[main_mode]}" + (", read" if args.reader else ""))
     main_row = ke.pooled_row(main_name + (f", {main_language}" if main_language != "canonical"
                                           else ""),
                              [rows[main_mode, s] for s in main_specs],

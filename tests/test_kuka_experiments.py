@@ -144,7 +144,8 @@ def _check_planner_result(result, out, kind, modes, languages):
     assert data["policy"] == "planner" and data["modes"] == list(modes)
     assert data["checkpoint"] is not None and data["train_seconds"] is not None
     main, rows = data["rows"][0], data["rows"][1:]
-    assert data["states_method"] == main["method"] == "planner on-the-fly"
+    assert data["states_method"] == main["method"]
+    assert main["method"] == "planner on-the-fly" + (", read" if data["reader"] else "")
     assert len(rows) == 2 * len(modes) * len(languages)
     for row in rows:
         assert 0.0 <= row["SR_diffuser"] <= 100.0 and 0.0 <= row["SR"] <= 100.0
@@ -177,8 +178,18 @@ def test_stacking_planner_end_to_end(train_dir, tmp_path):
 
 
 def test_rearrangement_planner_end_to_end_with_paraphrases(train_dir, tmp_path):
+    """With a (tiny) reader: its rows say so and the run records it."""
+    from diffplan.reader import save_reader, train_reader
+    from envs.kuka import reader
+
+    config = reader.reader_config(dim=16, num_layers=1, num_heads=2)
+    save_reader(str(tmp_path / "reader"), config,
+                train_reader(config, reader.role_batch, [0], 2))
     result = _planner_run("rearrangement", train_dir, tmp_path,
-                          ["--modes", "on_the_fly", "--language", "both"])
+                          ["--modes", "on_the_fly", "--language", "both",
+                           "--reader", str(tmp_path / "reader")])
+    assert result["reader"] == str(tmp_path / "reader")
+    assert all(r["method"].endswith(", read") for r in result["rows"][1:])
     _check_planner_result(result, tmp_path, "rearrangement", ("on_the_fly",),
                           ("canonical", "paraphrased"))
     rows = result["rows"][1:]
