@@ -27,7 +27,7 @@ from envs.kuka import grammar, scene
 BATCH = 128
 """Instructions per training batch."""
 STEPS = 2000
-"""Training steps per tagger (about a minute here)."""
+"""Training steps per tagger (about two minutes each here)."""
 SEEDS = (0, 1, 2, 3, 4)
 """The shipped reader's taggers."""
 
