@@ -22,6 +22,7 @@ import jax.numpy as jnp
 
 from diffplan import language
 from diffplan.reader import ReaderConfig, role_probabilities
+from diffplan.text_encoder import sentence_positions
 from envs.kuka import grammar, scene
 
 BATCH = 128
@@ -74,9 +75,7 @@ def canonical_tokens(tokens, p_top):
     """int32 (L,) tokens (int32 (L,), an instruction) restated canonically from p_top float32
     (L,), each token's probability of naming its relation's upper block; jit/vmap-able."""
     tokens = jnp.asarray(tokens, jnp.int32)
-    stop = grammar.VOCABULARY.word_to_id["."]
-    ends = (tokens == stop).astype(jnp.int32)
-    sentence = jnp.cumsum(ends) - ends
+    sentence = sentence_positions(tokens[None], grammar.VOCABULARY.word_to_id["."])[1][0]
     block = (tokens >= grammar.block_token(0)) & (tokens <= grammar.block_token(
         scene.NUM_BLOCKS - 1))
     words = tokens != language.PAD_ID
