@@ -87,49 +87,43 @@ def role_loss(logits, roles, named):
     return (ce * named).sum() / jnp.maximum(named.sum(), 1)
 
 
-def _trainer(config: ReaderConfig, batch_fn: Callable, steps: int, lr: float):
-    """jitted key -> one tagger's parameters (init from key, then ``steps`` Adam steps on
-    ``batch_fn(fold_in(key, i + 1))``): compiled once, shared by every seed."""
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
-    model = Tagger(config)
-    opt = optax.adam(lr)
-
-    def train(key):
-        params = model.init(key, jnp.zeros((1, config.max_tokens), jnp.int32))
-
-        def step(carry, i):
-            params, opt_state = carry
-            tokens, roles, named = batch_fn(jax.random.fold_in(key, i + 1))
-            grads = jax.grad(lambda p: role_loss(model.apply(p, tokens), roles, named))(params)
-            updates, opt_state = opt.update(grads, opt_state)
-            return (optax.apply_updates(params, updates), opt_state), None
-
-        (params, _), _ = jax.lax.scan(step, (params, opt.init(params)), jnp.arange(steps))
-        return params
-
-    return jax.jit(train)
-
-
 def train_tagger(config: ReaderConfig, batch_fn: Callable, seed: int, steps: int,
                  lr: float = 1e-3):
     """One tagger's parameters after ``steps`` Adam steps on ``batch_fn(key) -> (tokens int32
     (B, L), roles int32 (B, L), named bool (B, L))`` from seed (batch i from fold_in(key, i+1))."""
-    return _trainer(config, batch_fn, steps, lr)(jax.random.PRNGKey(seed))
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    model = Tagger(config)
+    key = jax.random.PRNGKey(seed)
+    params = model.init(key, jnp.zeros((1, config.max_tokens), jnp.int32))
+    opt = optax.adam(lr)
+
+    @jax.jit
+    def step(carry, i):
+        params, opt_state = carry
+        tokens, roles, named = batch_fn(jax.random.fold_in(key, i + 1))
+        grads = jax.grad(lambda p: role_loss(model.apply(p, tokens), roles, named))(params)
+        updates, opt_state = opt.update(grads, opt_state)
+        return (optax.apply_updates(params, updates), opt_state), None
+
+    # Compiled per tagger, as the shipped reader was trained: the same steps compiled as one
+    # program shared by every seed differ in rounding, and the ensemble then reads the held-out
+    # phrasings differently (90.0% instead of 85.2% restated; docs/results.md).
+    run = jax.jit(lambda c: jax.lax.scan(step, c, jnp.arange(steps))[0])
+    params, _ = run((params, opt.init(params)))
+    return params
 
 
 def train_reader(config: ReaderConfig, batch_fn: Callable, seeds: Sequence[int], steps: int,
                  lr: float = 1e-3, progress: Callable | None = None):
-    """The ensemble's parameters (one tagger per seed as :func:`train_tagger`, stacked on a
-    leading (E,) axis; one compiled training program for all); progress: optional callable
-    run after each tagger."""
+    """The ensemble's parameters (one tagger per seed, stacked on a leading (E,) axis);
+    progress: optional callable run after each tagger."""
     seeds = list(seeds)
     if not seeds:
         raise ValueError("a reader needs at least one seed")
-    train = _trainer(config, batch_fn, steps, lr)
     trained = []
     for seed in seeds:
-        trained.append(train(jax.random.PRNGKey(seed)))
+        trained.append(train_tagger(config, batch_fn, seed, steps, lr))
         if progress is not None:
             progress()
     return jax.tree.map(lambda *xs: jnp.stack(xs), *trained)
