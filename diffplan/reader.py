@@ -37,7 +37,9 @@ READER_KIND = "diffplan-reader/1"
 class ReaderConfig:
     """One tagger's shape: vocabulary, instruction length L, roles R, encoder size;
     sentence_end_id: the token that ends a sentence (positions then count within sentences,
-    ``TextEncoder.sentence_end_id``), -1 for absolute positions."""
+    ``TextEncoder.sentence_end_id``), -1 for absolute positions; sentence_local: 1 reads each
+    sentence on its own (``TextEncoder.sentence_local``: a sentence's roles then do not depend
+    on the sentences around it), 0 lets every token attend to the whole instruction."""
 
     vocab_size: int
     max_tokens: int
@@ -46,11 +48,18 @@ class ReaderConfig:
     num_layers: int = 2
     num_heads: int = 4
     sentence_end_id: int = -1
+    sentence_local: int = 0
 
     def __post_init__(self):
         for name in ("vocab_size", "max_tokens", "num_roles", "dim", "num_heads"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"ReaderConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.sentence_local not in (0, 1):
+            raise ValueError(f"ReaderConfig.sentence_local must be 0 or 1, got "
+                             f"{self.sentence_local}")
+        if self.sentence_local and self.sentence_end_id < 0:
+            raise ValueError("ReaderConfig.sentence_local=1 needs sentence_end_id (the token "
+                             "that ends a sentence)")
         if self.num_roles < 2:
             raise ValueError(f"a reader tells at least 2 roles apart, got num_roles="
                              f"{self.num_roles}")
@@ -76,7 +85,8 @@ class Tagger(nn.Module):
     def __call__(self, tokens):
         c = self.config
         x, _ = TextEncoder(c.vocab_size, c.max_tokens, dim=c.dim, num_layers=c.num_layers,
-                           num_heads=c.num_heads, sentence_end_id=c.sentence_end_id)(tokens)
+                           num_heads=c.num_heads, sentence_end_id=c.sentence_end_id,
+                           sentence_local=bool(c.sentence_local))(tokens)
         return nn.Dense(c.num_roles)(x)
 
 

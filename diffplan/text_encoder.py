@@ -16,6 +16,11 @@ Positions: absolute (token i gets position i, the default), or per sentence when
 from the start of its sentence, and a learned embedding of the sentence's index is added. Then
 the embedding of a sentence's words does not depend on how long the sentences before it are,
 so a sentence reads the same wherever a multi-sentence instruction puts it.
+
+Sentence-local reading (``sentence_local=True``, with ``sentence_end_id``): every token attends
+only to the tokens of its own sentence and no sentence-index embedding is added, so a sentence's
+features are exactly the same whatever sentences stand before or after it (for tasks where a
+word's meaning is fixed within its sentence).
 """
 from __future__ import annotations
 
@@ -47,7 +52,8 @@ def sentence_positions(tokens: jax.Array, sentence_end_id: int) -> tuple[jax.Arr
 
 
 class TextEncoderLayer(nn.Module):
-    """Pre-norm layer: x + SelfAttn(LN x, mask); x + MLP(LN x).  (B, L, D) -> (B, L, D)."""
+    """Pre-norm layer: x + SelfAttn(LN x, mask); x + MLP(LN x).  (B, L, D) -> (B, L, D);
+    mask bool (B, L) (keys) or (B, L, L) (per query, ``MultiHeadAttention``)."""
 
     num_heads: int
     mlp_ratio: int = 4
@@ -76,6 +82,8 @@ class TextEncoder(nn.Module):
       sentence_end_id: -1 (absolute positions), or the token id that ends a sentence: positions
         count within each sentence, plus a learned sentence-index table ``sentence_embed``
         (:func:`sentence_positions`).
+      sentence_local: attention stays within each sentence and the sentence-index table is
+        left out (requires sentence_end_id >= 0).
 
     Call: tokens (B, L) int32 -> (features (B, L, dim) float32, mask (B, L) bool).
     """
@@ -88,6 +96,7 @@ class TextEncoder(nn.Module):
     embed_dim: Optional[int] = None
     embed: Optional[nn.Module] = None
     sentence_end_id: int = -1
+    sentence_local: bool = False
 
     @nn.compact
     def __call__(self, tokens: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -100,8 +109,11 @@ class TextEncoder(nn.Module):
             raise ValueError(f"instruction length L={length} exceeds max_tokens={self.max_tokens}")
         if not jnp.issubdtype(tokens.dtype, jnp.integer):
             raise ValueError(f"tokens must be integer ids, got dtype {tokens.dtype}")
+        if self.sentence_local and self.sentence_end_id < 0:
+            raise ValueError("sentence_local needs sentence_end_id (the token ending a sentence)")
         tokens = tokens.astype(jnp.int32)
         mask = tokens != 0
+        attend = mask
         table = self.embed
         if table is None:
             table = nn.Embed(self.vocab_size, self.embed_dim or self.dim, name="token_embed")
@@ -113,10 +125,15 @@ class TextEncoder(nn.Module):
             x = x + pos[None, :length]
         else:
             position, sentence = sentence_positions(tokens, self.sentence_end_id)
-            sentences = self.param("sentence_embed", nn.initializers.normal(0.02),
-                                   (self.max_tokens, self.dim))
-            x = x + pos[position] + sentences[sentence]
+            x = x + pos[position]
+            if self.sentence_local:
+                same = sentence[:, :, None] == sentence[:, None, :]
+                attend = mask[:, :, None] & mask[:, None, :] & same
+            else:
+                sentences = self.param("sentence_embed", nn.initializers.normal(0.02),
+                                       (self.max_tokens, self.dim))
+                x = x + sentences[sentence]
         for i in range(self.num_layers):
-            x = TextEncoderLayer(self.num_heads, name=f"layer{i}")(x, mask)
+            x = TextEncoderLayer(self.num_heads, name=f"layer{i}")(x, attend)
         x = nn.LayerNorm(name="ln_final")(x)
         return x, mask

@@ -104,7 +104,8 @@ class MultiHeadAttention(nn.Module):
     Self-attention (``context is None``) uses one fused (D -> 3D) qkv projection; cross-attention
     one (D -> D) query and one fused (D_ctx -> 2D) key/value projection.
 
-    Call: x (B, Q, D), context (B, K, D_ctx) or None, mask (B, K) bool or None -> (B, Q, D).
+    Call: x (B, Q, D), context (B, K, D_ctx) or None, mask bool (B, K) (the keys every query
+    may attend to), (B, Q, K) (per query) or None -> (B, Q, D).
     Rows whose keys are all masked return exactly zero (no information leaks from padding).
     """
 
@@ -130,12 +131,15 @@ class MultiHeadAttention(nn.Module):
         v = v.reshape(b, k_len, self.num_heads, dh)
         logits = jnp.einsum("bqhd,bkhd->bhqk", q, k)
         if mask is not None:
-            logits = jnp.where(mask[:, None, None, :], logits, _NEG_INF)
+            per_query = mask[:, None] if mask.ndim == 3 else mask[:, None, None, :]
+            logits = jnp.where(per_query, logits, _NEG_INF)
         weights = jax.nn.softmax(logits, axis=-1)
         out = jnp.einsum("bhqk,bkhd->bqhd", weights, v).reshape(b, q_len, d)
         out = nn.Dense(d, name="out")(out)
         if mask is not None:
-            out = out * jnp.any(mask, axis=-1)[:, None, None].astype(out.dtype)
+            live = jnp.any(mask, axis=-1)
+            live = live[:, :, None] if mask.ndim == 3 else live[:, None, None]
+            out = out * live.astype(out.dtype)
         return out
 
 

@@ -146,8 +146,8 @@ def load_reader(directory: str):
         config, params, _ = load(directory)
     except (OSError, ValueError, KeyError) as e:
         raise SystemExit(f"--reader {directory!r}: {e}") from None
-    if config != reader_config(**{k: getattr(config, k) for k in ("dim", "num_layers",
-                                                                    "num_heads")}):
+    sized = ("dim", "num_layers", "num_heads", "sentence_local")
+    if config != reader_config(**{k: getattr(config, k) for k in sized}):
         raise SystemExit(f"--reader {directory!r} was trained for another vocabulary or "
                          f"instruction length ({config}), not the Kuka world's")
     return config, params

@@ -200,3 +200,54 @@ def test_sentence_positions_make_a_sentence_independent_of_the_ones_before():
         a, _ = enc.apply(v, short)
         b, _ = enc.apply(v, long)
         assert np.allclose(a[0, 3:6], b[0, 4:7], atol=1e-5) == same
+
+
+def test_per_query_mask_equals_key_mask_when_broadcast_and_zeroes_dead_rows():
+    """A (B, Q, K) mask that repeats a (B, K) key mask gives the same attention; a query whose
+    keys are all masked gets exactly zero."""
+    attn = MultiHeadAttention(num_heads=2)
+    x = jax.random.normal(jax.random.PRNGKey(1), (2, 5, 8))
+    keys = jnp.array([[1, 1, 1, 0, 0], [1, 0, 1, 1, 1]], bool)
+    v = random_variables(attn, x)
+    by_key = attn.apply(v, x, mask=keys)
+    per_query = jnp.broadcast_to(keys[:, None, :], (2, 5, 5))
+    np.testing.assert_allclose(attn.apply(v, x, mask=per_query), by_key, atol=1e-6)
+    dead = per_query.at[0, 2].set(False)
+    out = attn.apply(v, x, mask=dead)
+    assert np.all(np.asarray(out[0, 2]) == 0.0)
+    np.testing.assert_allclose(out[1], by_key[1], atol=1e-6)
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.lists(st.integers(2, 11), min_size=0, max_size=4),
+       st.lists(st.integers(2, 11), min_size=0, max_size=4))
+def test_sentence_local_encoder_reads_a_sentence_the_same_wherever_it_stands(before, after):
+    """With sentence_local, a sentence's features (after attention layers) are the same
+    whatever sentences come before and after it; without it, a sentence before changes them."""
+    end = 1
+    middle = [5, 6, 7, end]
+    prefix = before + [end] if before else []
+    suffix = after + [end] if after else []
+    row = prefix + middle + suffix
+    tokens = jnp.asarray([row + [0] * (16 - len(row))], jnp.int32)
+    alone = jnp.asarray([middle + [0] * (16 - len(middle))], jnp.int32)
+    enc = TextEncoder(vocab_size=12, max_tokens=16, dim=8, num_layers=2, num_heads=2,
+                      sentence_end_id=end, sentence_local=True)
+    v = random_variables(enc, alone)
+    assert "sentence_embed" not in v["params"]
+    a, _ = enc.apply(v, alone)
+    b, _ = enc.apply(v, tokens)
+    np.testing.assert_allclose(a[0, :4], b[0, len(prefix):len(prefix) + 4], atol=1e-5)
+    if prefix:
+        shared = TextEncoder(vocab_size=12, max_tokens=16, dim=8, num_layers=2, num_heads=2,
+                             sentence_end_id=end)
+        w = random_variables(shared, alone)
+        c, _ = shared.apply(w, alone)
+        d, _ = shared.apply(w, tokens)
+        assert not np.allclose(c[0, :4], d[0, len(prefix):len(prefix) + 4], atol=1e-5)
+
+
+def test_sentence_local_needs_a_sentence_end():
+    enc = TextEncoder(vocab_size=12, max_tokens=8, dim=8, num_heads=2, sentence_local=True)
+    with pytest.raises(ValueError, match="sentence_end_id"):
+        jax.eval_shape(enc.init, jax.random.PRNGKey(0), jnp.ones((1, 4), jnp.int32))

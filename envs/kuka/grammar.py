@@ -185,17 +185,23 @@ def sentence_templates(ids) -> list[tuple[str, int] | None]:
     return sentence_templates_batch(np.asarray(ids).reshape(1, -1))[0]
 
 
+def split_sentences(ids) -> list[list[int]]:
+    """Plain Python: the sentences of an instruction (int token ids), padding dropped, each
+    ending with its "." (a last sentence without one is kept as it is)."""
+    ids = [int(i) for i in np.asarray(ids).ravel() if int(i) != language.PAD_ID]
+    stop = VOCABULARY.word_to_id["."]
+    ends = [i + 1 for i, token in enumerate(ids) if token == stop]
+    if ids and (not ends or ends[-1] != len(ids)):
+        ends.append(len(ids))
+    return [ids[a:b] for a, b in zip([0] + ends[:-1], ends)]
+
+
 def sentence_templates_batch(tokens) -> list[list[tuple[str, int] | None]]:
     """:func:`sentence_templates` of each instruction of tokens int (N, L) (numpy), its
     sentences matched in one vmapped call per sentence kind."""
-    stop = VOCABULARY.word_to_id["."]
     per_instruction, rows = [], []
     for ids in np.asarray(tokens):
-        ids = [int(i) for i in ids if int(i) != language.PAD_ID]
-        ends = [i + 1 for i, token in enumerate(ids) if token == stop]
-        if ids and (not ends or ends[-1] != len(ids)):
-            ends.append(len(ids))
-        sentences = [ids[a:b] for a, b in zip([0] + ends[:-1], ends)]
+        sentences = split_sentences(ids)
         per_instruction.append([len(rows) + j if len(s) <= SENTENCE_TOKENS else None
                                 for j, s in enumerate(sentences)])
         for sentence in sentences:

@@ -12,8 +12,9 @@ block.
 Restating (:func:`canonical_tokens`): a first sentence that names no block is the tower
 sentence; in every other sentence with two block words the one the reader gives the higher
 probability of being the upper block is the top, the other the bottom; the instruction is
-rebuilt with ``grammar.instruction_tokens(..., "canonical")``. Sentences with any other number
-of block words are dropped.
+rebuilt with ``grammar.instruction_tokens(..., "canonical")``. Inside jit, sentences with any
+other number of block words are dropped; a user's own text goes through :func:`read_text`,
+which refuses such a sentence with one line naming it instead.
 """
 from __future__ import annotations
 
@@ -35,10 +36,12 @@ SEEDS = (0, 1, 2, 3, 4)
 
 def reader_config(**overrides) -> ReaderConfig:
     """The Kuka reader's tagger: the instruction's vocabulary and length, the roles
-    ``grammar.ROLES``, positions counted within sentences."""
+    ``grammar.ROLES``, positions counted within sentences, each sentence read on its own (which
+    block is the upper one is decided within its relation sentence, so a phrasing read right
+    in one place is read right in every place)."""
     values = dict(vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS,
                   num_roles=len(grammar.ROLES),
-                  sentence_end_id=grammar.VOCABULARY.word_to_id["."])
+                  sentence_end_id=grammar.VOCABULARY.word_to_id["."], sentence_local=1)
     values.update(overrides)
     return ReaderConfig(**values)
 
@@ -122,3 +125,34 @@ def read_rate(config: ReaderConfig, params, key, n: int, phrasing: str) -> float
     canonical, _, _ = _instructions(k_draw, n, "canonical")
     restated = restate_jit(config, params, tokens)
     return 100.0 * float(jnp.all(restated == canonical, -1).mean())
+
+
+def check_readable(tokens) -> None:
+    """ValueError naming the first sentence of an instruction (int tokens (L,), host-side) that
+    :func:`canonical_tokens` could not restate: only a first sentence may name no block (the
+    tower sentence); every other must name two different blocks; at most MAX_RELATIONS of
+    them."""
+    sentences = grammar.split_sentences(tokens)
+    relations = 0
+    for i, sentence in enumerate(sentences):
+        blocks = [t for t in sentence if grammar.block_token(0) <= t
+                  <= grammar.block_token(scene.NUM_BLOCKS - 1)]
+        if not blocks and i == 0 and len(sentences) > 1:
+            continue
+        if len(blocks) != 2 or blocks[0] == blocks[1]:
+            raise ValueError(f"cannot read {grammar.decode(sentence)!r}: a relation sentence "
+                             f"names two different blocks, this one names {len(blocks)}"
+                             + (" (the same block twice)" if len(blocks) == 2 else ""))
+        relations += 1
+    if relations > grammar.MAX_RELATIONS:
+        raise ValueError(f"the instruction has {relations} relation sentences, more than "
+                         f"{grammar.MAX_RELATIONS}")
+
+
+def read_text(config: ReaderConfig, params, text: str):
+    """int32 (L,): a user's instruction text restated canonically by the reader; ValueError
+    (one line) for a word outside the vocabulary or a sentence it could not restate
+    (:func:`check_readable`)."""
+    tokens = grammar.encode(text)
+    check_readable(tokens)
+    return restate_jit(config, params, jnp.asarray(tokens))
