@@ -158,6 +158,9 @@ def test_shipped_reader_loads_and_reads_held_out_phrasings():
              for p in ("canonical", "paraphrased", "unseen")}
     assert rates["canonical"] == 100.0 and rates["paraphrased"] >= 99.0
     assert rates["unseen"] >= 99.0
+    # the README's example, a held-out phrasing typed as text
+    out = reader.read_text(config, params, "The red block should be below the green block.")
+    assert grammar.decode(out) == "Stack the green block on top of the red block."
 
 
 def test_read_text_restates_a_users_sentence_and_refuses_what_it_cannot_read(tiny_reader):
