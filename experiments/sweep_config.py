@@ -12,7 +12,9 @@ CLIs' --psi), samples (plans drawn per re-plan, the nearest guess kept: the CLIs
 denoiser ("learned": the checkpoint's; "posterior": envs.gridworld.posterior's, which learns
 nothing and guesses the hidden target exactly, the CLIs' --posterior-denoiser rows).
 The Kuka world's: multi (several instructed relations: the multi-constraint column),
-language, carry ("path" | "arc"). language is the
+language, carry ("path" | "arc"), reader (a reader directory, e.g. "checkpoints/kuka_reader":
+every instruction restated canonically before the planner reads it, the CLIs' --reader;
+missing: none). language is the
 instructions' phrasing in both worlds: "canonical" | "paraphrased" | "unseen" (held-out
 phrasings training never saw).
 """
@@ -37,7 +39,7 @@ GRID_DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly",
                  "episodes": 1000, "batch_size": _SPEC.eval_batch}
 """The grid-world CLIs' defaults (replan None: the mode's own trigger, MODE_REPLAN)."""
 KUKA_DEFAULTS = {"checkpoint": None, "modes": ks.MAIN_MODE, "num_steps": ks.NUM_STEPS,
-                 "multi": False, "language": "canonical", "carry": "path",
+                 "multi": False, "language": "canonical", "carry": "path", "reader": None,
                  "seed": DEFAULT_EVAL_SEED, "episodes": ks.DEFAULT_EPISODES,
                  "batch_size": ks.DEFAULT_BATCH}
 """The Kuka CLIs' defaults (one column per configuration: multi False is the single one)."""
@@ -48,7 +50,8 @@ KEYS = ("task",) + tuple(dict.fromkeys(itertools.chain(GRID_DEFAULTS, KUKA_DEFAU
 TYPES = {"task": str, "setting": str, "checkpoint": str, "modes": str, "num_steps": int,
          "eta": float, "warm_start_step": int, "warm_num_steps": int, "noise": str,
          "replan": str, "seed": int, "episodes": int, "batch_size": int, "multi": bool,
-         "language": str, "carry": str, "psi": str, "samples": int, "denoiser": str}
+         "language": str, "carry": str, "psi": str, "samples": int, "denoiser": str,
+         "reader": str}
 CHOICES = {"setting": tuple(gs.SPECS), "noise": ("fresh", "episode"),
            "replan": tuple(gs.TRIGGER_WORDS), "language": ks.LANGUAGES, "carry": ks.CARRIES,
            "psi": PSI_KINDS, "denoiser": ("learned", "posterior")}
@@ -89,7 +92,7 @@ def _task_of(raw: dict, index: int) -> str:
 
 def _checked(config: dict, index: int, key: str):
     value, kind = config[key], TYPES[key]
-    if value is None and key in ("checkpoint", "replan"):
+    if value is None and key in ("checkpoint", "replan", "reader"):
         return None
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)

@@ -9,7 +9,7 @@ import numpy as np
 CSV_FIELDS = ("task", "setting", "modes", "num_steps", "eta", "warm_num_steps",
               "warm_start_step", "noise", "replan", "multi", "language", "carry", "psi",
               "samples", "denoiser",
-              "seed", "episodes", "checkpoint", "SR", "SR_ordered", "SR_diffuser", "GD",
+              "seed", "episodes", "checkpoint", "reader", "SR", "SR_ordered", "SR_diffuser", "GD",
               "path_precision", "path_recall", "path_f1", "SPL", "fallback_percent",
               "settle_changed", "denoiser_calls_per_episode", "seconds", "compile_seconds",
               "wall_seconds", "devices")

@@ -74,6 +74,19 @@ class Runner:
             raise SweepError(f"configuration {index}: {e}") from e
         return den
 
+    def reader(self, config: dict, index: int):
+        """(ReaderConfig, parameters) of a Kuka configuration's reader, None without one."""
+        directory = config.get("reader")
+        if directory is None:
+            return None
+        if ("reader", directory) not in self._denoisers:
+            try:
+                self._denoisers["reader", directory] = ks.load_reader(directory)
+            except SystemExit as e:
+                raise SweepError(f"configuration {index}: " + str(e).replace(
+                    "--reader", "reader", 1)) from None
+        return self._denoisers["reader", directory]
+
     def _cached(self, key, build):
         """(compiled function, compile seconds: 0 when reused) of a cache key."""
         if key in self._compiled:
@@ -181,6 +194,7 @@ class Runner:
         n, seed, batch = config["episodes"], config["seed"], config["batch_size"]
         episodes = self._episodes_of((spec, n, seed, batch),
                                      lambda: ke.generate_episodes(spec, n, seed, batch))
+        reader = self.reader(config, index)
         planner = Planner(den, planner_config(config))
         first = jax.tree.map(lambda x: x[np.zeros(batch, int)], episodes)
         keys = harness.planner_keys(seed, np.zeros(batch, int))
@@ -192,13 +206,15 @@ class Runner:
         bar = self._bar(config, index)
         t0 = time.time()
         try:
-            final = ke.run_planner(task, planner, episodes, seed, batch, bar, run=compiled)
+            final = ke.run_planner(task, planner, episodes, seed, batch, bar, run=compiled,
+                                   reader=reader)
         finally:
             bar.close()
         seconds = time.time() - t0
         if trajectories:
             ke.write_states(trajectories, [(episodes, final)])
-        method = ks.label(config["modes"], spec.multi, spec.language, "planner")
+        method = ks.label(config["modes"], spec.multi, spec.language, "planner",
+                          reader is not None)
         row = ke.column_metrics(method, "multi" if spec.multi else "single", episodes, final,
                                 seconds)
         return row, compile_seconds, seconds

@@ -80,6 +80,10 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     ({"setting": "p_mo2g_far", "denoiser": "posterior", "psi": "follow"}, "posterior denoiser"),
     ({"setting": "p_mo2g_far", "denoiser": "posterior", "checkpoint": "x"}, "no checkpoint"),
     ({"setting": "p_mo2g_far", "denoiser": "oracle"}, "denoiser must be one of"),
+    ({"setting": "p_mo2g", "reader": "checkpoints/kuka_reader"}, "do not apply to"),
+    ({"task": "kuka/stacking", "reader": 3}, "reader must be str"),
+    ({"task": "kuka/stacking", "reader": "no/such/reader"}, "reader 'no/such/reader'"),
+    ({"task": "kuka/stacking", "reader": "checkpoints/kuka"}, "does not hold a reader"),
 ])
 def test_bad_configurations_are_refused_in_one_line(tmp_path, capsys, config, message):
     path = tmp_path / "bad.json"
@@ -224,14 +228,23 @@ def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
     common = {"task": "kuka/stacking", "episodes": 4, "seed": 7, "batch_size": kf.BATCH}
     path = tmp_path / "kuka.json"
     path.write_text(json.dumps([{**common, "modes": "on_the_fly"},
-                                {**common, "modes": "on_the_fly", "multi": True}]))
+                                {**common, "modes": "on_the_fly", "multi": True},
+                                {**common, "modes": "on_the_fly", "language": "unseen",
+                                 "reader": "checkpoints/kuka_reader"}]))
     result = sweep.main(["--config", str(path), "--json", str(tmp_path / "s.json"),
                          "--csv", str(tmp_path / "s.csv"), "--trajectories",
                          str(tmp_path / "states"), "--no-progress"])
     rows = result["rows"]
     assert json.loads((tmp_path / "s.json").read_text())["rows"] == json.loads(json.dumps(rows))
     assert [(r["modes"], r["multi"], r["column"]) for r in rows] == [
-        ("on_the_fly", False, "single"), ("on_the_fly", True, "multi")]
+        ("on_the_fly", False, "single"), ("on_the_fly", True, "multi"),
+        ("on_the_fly", False, "single")]
+    # Held-out phrasings restated by the shipped reader: the same relations as the canonical
+    # episodes of the seed, read back to their exact tokens, so the same rollout and row.
+    read = rows.pop()
+    assert read["reader"] == "checkpoints/kuka_reader" and read["method"].endswith("read")
+    for key in ("SR", "SR_diffuser", "placements_per_episode", "denoiser_calls_per_episode"):
+        assert read[key] == rows[0][key], key
     # On-the-fly: one plan of NUM_STEPS denoiser calls per placement.
     for r in rows:
         assert r["denoiser_calls_per_episode"] == pytest.approx(
