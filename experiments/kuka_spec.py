@@ -135,19 +135,19 @@ def policy_name(policy: str) -> str:
     return METHOD_NAMES.get(policy, policy)
 
 
-def load_reader(directory: str):
+def load_reader(directory: str, name: str = "--reader"):
     """(ReaderConfig, params) of a reader directory (``diffplan.reader.load_reader``), checked
     to be the Kuka world's (its tagger's vocabulary and instruction length); SystemExit with
-    one line otherwise."""
+    one line, starting with name (the flag or key that gave it), otherwise."""
     from diffplan.reader import load_reader as load
     from envs.kuka.reader import reader_config
 
     try:
         config, params, _ = load(directory)
     except (OSError, ValueError, KeyError) as e:
-        raise SystemExit(f"--reader {directory!r}: {e}") from None
+        raise SystemExit(f"{name} {directory!r}: {e}") from None
     sized = ("dim", "num_layers", "num_heads", "sentence_local")
     if config != reader_config(**{k: getattr(config, k) for k in sized}):
-        raise SystemExit(f"--reader {directory!r} was trained for another vocabulary or "
+        raise SystemExit(f"{name} {directory!r} was trained for another vocabulary or "
                          f"instruction length ({config}), not the Kuka world's")
     return config, params

@@ -81,10 +81,9 @@ class Runner:
             return None
         if ("reader", directory) not in self._denoisers:
             try:
-                self._denoisers["reader", directory] = ks.load_reader(directory)
+                self._denoisers["reader", directory] = ks.load_reader(directory, "reader")
             except SystemExit as e:
-                raise SweepError(f"configuration {index}: " + str(e).replace(
-                    "--reader", "reader", 1)) from None
+                raise SweepError(f"configuration {index}: {e}") from None
         return self._denoisers["reader", directory]
 
     def _cached(self, key, build):

@@ -84,7 +84,7 @@ def _sentence_meaning(row):
     words as (top, bottom) (0 where absent)."""
     index, slots = language.match_template(row, grammar.RELATIONS)
     tower_index, _ = language.match_template(row, grammar.TOWERS)
-    is_colour = (row >= grammar.block_token(0)) & (row <= grammar.block_token(scene.NUM_BLOCKS - 1))
+    is_colour = grammar.is_block_token(row)
     order = jnp.argsort(jnp.where(is_colour, jnp.arange(row.shape[0]), row.shape[0]))
     first = jnp.where(is_colour[order[0]], row[order[0]], 0)
     second = jnp.where(is_colour[order[1]], row[order[1]], 0)

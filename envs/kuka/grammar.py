@@ -110,6 +110,11 @@ def block_token(block):
     return block + 1
 
 
+def is_block_token(ids):
+    """Whether each token id names a block (ints, numpy or jax arrays)."""
+    return (ids >= block_token(0)) & (ids <= block_token(len(BLOCK_NAMES) - 1))
+
+
 def encode(text: str) -> np.ndarray:
     return VOCABULARY.encode(text, MAX_TOKENS)
 

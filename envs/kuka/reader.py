@@ -79,8 +79,7 @@ def canonical_tokens(tokens, p_top):
     (L,), each token's probability of naming its relation's upper block; jit/vmap-able."""
     tokens = jnp.asarray(tokens, jnp.int32)
     sentence = sentence_positions(tokens[None], grammar.VOCABULARY.word_to_id["."])[1][0]
-    block = (tokens >= grammar.block_token(0)) & (tokens <= grammar.block_token(
-        scene.NUM_BLOCKS - 1))
+    block = grammar.is_block_token(tokens)
     words = tokens != language.PAD_ID
     tower = jnp.any(words & (sentence == 0)) & ~jnp.any(block & (sentence == 0))
     relation = sentence - tower.astype(jnp.int32)
@@ -135,8 +134,7 @@ def check_readable(tokens) -> None:
     sentences = grammar.split_sentences(tokens)
     relations = 0
     for i, sentence in enumerate(sentences):
-        blocks = [t for t in sentence if grammar.block_token(0) <= t
-                  <= grammar.block_token(scene.NUM_BLOCKS - 1)]
+        blocks = [t for t in sentence if grammar.is_block_token(t)]
         if not blocks and i == 0 and len(sentences) > 1:
             continue
         if len(blocks) != 2 or blocks[0] == blocks[1]:
