@@ -4,7 +4,7 @@ optimisation step built on it.
 The planning tensor ``x0`` is (B, H, W, C + G): C condition channels (kept clean) then G
 generated channels (path, goal). One training step (the paper's objective, sec. 3.3):
 
-    t   ~ U{0, ..., T-1}                  (B,)
+    t   ~ U{0, ..., T-1}                  (B,)   (or skewed to noisier t: draw_timesteps)
     eps ~ N(0, 1)                         (B, H, W, G)   generated channels only
     x_t = [x0[..., :C],  sqrt(ab_t) x0[..., C:] + sqrt(1 - ab_t) eps]
     L   = sum(loss_mask * (eps_theta(x_t, t, tokens) - eps)^2) / sum(loss_mask)
@@ -33,8 +33,8 @@ from diffplan.schedule import cosine_schedule
 from diffplan.train_state import (TrainConfig, TrainState, hashable, lr_schedule,
                                   make_optimizer)
 
-__all__ = ["Batch", "check_batch", "with_token_labels", "diffusion_loss", "token_loss",
-           "make_train_step", "make_val_loss"]
+__all__ = ["Batch", "check_batch", "with_token_labels", "diffusion_loss", "draw_timesteps",
+           "token_loss", "make_train_step", "make_val_loss"]
 
 
 class Batch(NamedTuple):
@@ -94,8 +94,22 @@ def with_token_labels(batch: Batch, labels: jax.Array, labelled: jax.Array,
                           token_weights=jnp.where(labelled, jnp.float32(weight), 0.0))
 
 
+def draw_timesteps(key: jax.Array, batch_size: int, num_timesteps: int,
+                   power: float = 1.0) -> jax.Array:
+    """int32 (batch_size,) training timesteps in [0, num_timesteps): uniform at power 1 (the
+    paper's draw, exactly ``jax.random.randint``); otherwise floor(T * u ** (1 / power)), u ~
+    U[0, 1), so P(t < k) = (k / T) ** power: a power > 1 draws the noisier timesteps more
+    often. The loss at each t keeps its target, so only how often each t is trained changes."""
+    if power == 1.0:
+        return jax.random.randint(key, (batch_size,), 0, num_timesteps, dtype=jnp.int32)
+    u = jax.random.uniform(key, (batch_size,), jnp.float32)
+    t = jnp.floor(num_timesteps * u ** (1.0 / power)).astype(jnp.int32)
+    return jnp.clip(t, 0, num_timesteps - 1)
+
+
 def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
-                   alphas_cumprod: jax.Array, num_gen_channels: int, prediction: str = "eps"):
+                   alphas_cumprod: jax.Array, num_gen_channels: int, prediction: str = "eps",
+                   timestep_power: float = 1.0):
     """The masked noise-prediction MSE of one batch.
 
     Args:
@@ -106,6 +120,7 @@ def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
       alphas_cumprod: float32 (T,).
       num_gen_channels: G.
       prediction: "eps" (target: the noise) or "x0" (target: the clean generated channels).
+      timestep_power: how timesteps are drawn (:func:`draw_timesteps`; 1: uniform).
 
     Returns:
       (loss scalar, aux dict with ``t`` (B,) and ``mask_sum``).
@@ -118,7 +133,7 @@ def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
     B = x0.shape[0]
     T = alphas_cumprod.shape[0]
     t_key, eps_key = jax.random.split(key)
-    t = jax.random.randint(t_key, (B,), 0, T, dtype=jnp.int32)
+    t = draw_timesteps(t_key, B, T, timestep_power)
     eps = jax.random.normal(eps_key, x0.shape[:-1] + (G,), jnp.float32)
     ab = alphas_cumprod[t][:, None, None, None]
     x_gen = jnp.sqrt(ab) * x0[..., C:] + jnp.sqrt(1.0 - ab) * eps
@@ -173,7 +188,8 @@ def _make_core_step(model, config: TrainConfig, alphas_cumprod):
 
     def core(state: TrainState, batch: Batch, key: jax.Array):
         def loss_fn(p):
-            loss, _ = diffusion_loss(p, model.apply, batch, key, ab, G, config.prediction)
+            loss, _ = diffusion_loss(p, model.apply, batch, key, ab, G, config.prediction,
+                                     config.timestep_power)
             if batch.token_labels is None:
                 return loss, {}
             tl = token_loss(p, functools.partial(model.apply, method="token_logits"), batch)
@@ -234,7 +250,9 @@ def make_train_step(model, config: TrainConfig, *, mesh=None, alphas_cumprod=Non
 
 @functools.partial(jax.jit, static_argnames=("model", "config", "batch_fn", "mesh"))
 def _val_loss(params, val_root, alphas_cumprod, *, model, config, batch_fn, mesh):
-    """Mean loss of ``params`` over ``config.val_batches`` batches with fixed keys."""
+    """Mean loss of ``params`` over ``config.val_batches`` batches with fixed keys (timesteps
+    drawn uniformly whatever ``config.timestep_power``: the paper's objective, comparable
+    across recipes)."""
 
     def body(total, j):
         batch_key, loss_key = jax.random.split(jax.random.fold_in(val_root, j))

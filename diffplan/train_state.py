@@ -47,6 +47,10 @@ class TrainConfig:
       ema_decay: EMA decay; the effective decay is min(ema_decay, (1 + n) / (10 + n)) at
         update n, so early EMA params follow the model.
       num_train_timesteps: diffusion steps T of the cosine schedule (paper: 100).
+      timestep_power: how a training example's timestep is drawn: t = floor(T * u ** (1 /
+        timestep_power)), u ~ U[0, 1). 1 is the paper's uniform draw; a larger power draws the
+        noisier timesteps more often (the noisiest fifth gets 1 - 0.8 ** power of the examples),
+        where a planner's choices are made (``diffplan.losses.draw_timesteps``).
       num_gen_channels: G, the number of trailing generated channels of x0 (2: path, goal).
       prediction: "eps" (the paper) or "x0": the network's target (see PREDICTIONS).
       checkpoint_every: save a checkpoint every this many steps (and at the end).
@@ -65,6 +69,7 @@ class TrainConfig:
     grad_clip: float = 1.0
     ema_decay: float = 0.999
     num_train_timesteps: int = 100
+    timestep_power: float = 1.0
     num_gen_channels: int = 2
     prediction: str = "eps"
     checkpoint_every: int = 1000
@@ -103,11 +108,17 @@ class TrainConfig:
         if self.warmup_steps >= self.steps:
             raise ValueError(f"TrainConfig.warmup_steps ({self.warmup_steps}) must be < steps "
                              f"({self.steps})")
+        if not self.timestep_power > 0:
+            raise ValueError(f"TrainConfig.timestep_power must be > 0, got "
+                             f"{self.timestep_power}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {self.ema_decay}")
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        if d["timestep_power"] == 1.0:  # absent at 1, as in checkpoints from before it
+            del d["timestep_power"]
+        return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "TrainConfig":

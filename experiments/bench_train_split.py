@@ -79,7 +79,8 @@ def _parts(world, model_size: str, batch_size, repeats: int, bar, settings=()
     G, prediction = config.num_gen_channels, config.prediction
     forward = jax.jit(lambda p, x, t, tokens: model.apply({"params": p}, x, t, tokens))
     loss_grad = jax.jit(jax.value_and_grad(
-        lambda p, batch, key: diffusion_loss(p, model.apply, batch, key, ab, G, prediction)[0]))
+        lambda p, batch, key: diffusion_loss(p, model.apply, batch, key, ab, G, prediction,
+                                             config.timestep_power)[0]))
     begin = time.perf_counter()
     batch, _ = jax.block_until_ready(draw(step_key(0, 0)))
     compile_s = {"generation": time.perf_counter() - begin}  # its first call: compilation

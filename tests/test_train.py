@@ -282,6 +282,38 @@ def test_x0_prediction_targets_the_clean_generated_channels():
         TrainConfig(prediction="v")
 
 
+def test_draw_timesteps_uniform_is_the_papers_draw_and_power_skews_to_noisy():
+    from diffplan.losses import draw_timesteps
+
+    key = jax.random.PRNGKey(7)
+    np.testing.assert_array_equal(  # power 1: exactly the uniform draw it replaced
+        np.asarray(draw_timesteps(key, 64, 10)),
+        np.asarray(jax.random.randint(key, (64,), 0, 10, dtype=jnp.int32)))
+    n, T = 200_000, 10
+    for power in (0.5, 2.0, 3.0):
+        t = np.asarray(draw_timesteps(key, n, T, power))
+        assert t.dtype == np.int32 and t.min() >= 0 and t.max() <= T - 1
+        # P(t < k) = (k / T) ** power, checked against the closed form (4 sigma)
+        for k in (2, 5, 8):
+            p = (k / T) ** power
+            assert abs(np.mean(t < k) - p) < 4 * np.sqrt(p * (1 - p) / n)
+
+
+def test_timestep_power_config_and_loss():
+    cfg = small_cfg(timestep_power=3.0)
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert "timestep_power" not in small_cfg().to_dict()  # old checkpoints compare equal
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="timestep_power"):
+            small_cfg(timestep_power=bad)
+    x0 = jax.random.uniform(jax.random.PRNGKey(0), (64, 4, 4, 3), minval=-1, maxval=1)
+    batch = Batch(x0=x0, tokens=jnp.ones((64, 3), jnp.int32), loss_mask=jnp.ones((64, 4, 4, 2)))
+    ab = cosine_schedule(10).alphas_cumprod
+    _, aux = diffusion_loss(None, lambda v, x, t, k: x[..., 1:], batch, jax.random.PRNGKey(1),
+                            ab, 2, "x0", timestep_power=4.0)
+    assert np.mean(np.asarray(aux["t"]) >= 8) > 0.4  # uniform: 0.2
+
+
 # ------------------------------------------------------------------------------- the one loop
 
 def _quadratic_run():
