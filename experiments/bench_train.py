@@ -5,9 +5,8 @@ held-out validation episodes, and the time split of one training step.
         [--target-metric SR,SR_ordered] [--eval-every 1000] [--split] [--json bench_train.json]
     python -m experiments.bench_train --world kuka --split-only --split-seconds 60
 
-Runs the world's default training recipe (gridworld: experiments.compile_p_mo2g --train, 8000
-steps of 64; kuka: experiments.kuka_stacking --train, 12000 steps of 32; seed 0; --batch-size
-changes the examples per step) into --train-dir, pausing every --eval-every steps (the
+Runs the world's default training recipe (gridworld: experiments.compile_p_mo2g --train;
+kuka: experiments.kuka_stacking --train; seed 0; --batch-size changes the examples per step) into --train-dir, pausing every --eval-every steps (the
 training's own checkpoint; diffplan.train resumes bit-exactly) to evaluate the EMA weights on
 --episodes validation episodes (seed 1000, never an evaluation seed): P-MO2G episodes in --mode
 (SR, SR_ordered), or, for kuka, --episodes per Table 2 column with on-the-fly planning under MJX
@@ -47,7 +46,8 @@ def build_parser():
                    "(default 1000)")
     p.add_argument("--max-steps", type=int, default=None,
                    help="stop after this many steps, a multiple of --eval-every (default: the "
-                        "recipe's whole run, 8000 gridworld / 12000 kuka)")
+                        "recipe's whole run, " + " / ".join(
+                            f"{w.train_steps} {name}" for name, w in bw.WORLDS.items()) + ")")
     p.add_argument("--episodes", type=int, default=200, help="validation episodes per "
                    "evaluation, per Table 2 column for kuka (default 200)")
     p.add_argument("--mode", default=None, choices=("on_the_fly", "warm_start", "one_shot"),

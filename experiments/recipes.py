@@ -39,16 +39,19 @@ def warmup(warmup_steps: int, steps: int) -> int:
 
 def train_config(*, seed: int, steps: int, batch_size: int, lr: float, warmup_steps: int,
                  num_gen_channels: int, prediction: str, checkpoint_every: int,
-                 max_log_every: int, num_train_timesteps: int = 100):
+                 max_log_every: int, num_train_timesteps: int = 100,
+                 timestep_power: float = 1.0):
     """The TrainConfig of an experiment: warm-up at most a tenth of the steps, a log every
     min(max_log_every, steps / 10) steps, num_train_timesteps diffusion training timesteps
-    (the paper's 100 unless the world's spec says otherwise)."""
+    (the paper's 100 unless the world's spec says otherwise), drawn with timestep_power (the
+    paper's uniform draw: 1)."""
     from diffplan.train import TrainConfig
 
     return TrainConfig(seed=seed, steps=steps, batch_size=batch_size, lr=lr,
                        warmup_steps=warmup(warmup_steps, steps),
                        num_gen_channels=num_gen_channels, prediction=prediction,
-                       num_train_timesteps=num_train_timesteps, checkpoint_every=checkpoint_every,
+                       num_train_timesteps=num_train_timesteps, timestep_power=timestep_power,
+                       checkpoint_every=checkpoint_every,
                        log_every=max(1, min(max_log_every, steps // 10)))
 
 

@@ -71,6 +71,13 @@ def _result_command(result) -> str:
         extra += f" --psi {result['psi']}"
     if result.get("samples", 1) > 1:
         extra += f" --samples {result['samples']}"
+    # The Kuka CLIs' own flags, where a result departs from their defaults.
+    if result.get("modes") and list(result["modes"]) != ["on_the_fly", "one_shot"]:
+        extra += f" --modes {','.join(result['modes'])}"
+    if result.get("carry", "path") != "path":
+        extra += f" --carry {result['carry']}"
+    if result.get("reader"):
+        extra += f" --reader {result['reader']}"
     return (f"python -m experiments.{result['experiment']} --episodes {result['episodes']} "
             f"{seed_flag}{extra}")
 
@@ -90,8 +97,11 @@ def write_note(out_dir, train_dir, results, command, remarks=(), world: str = "g
         f"{train_config.get('batch_size')}; lr {train_config.get('lr')}",
         *([f"- mixture per batch: {meta['extra']['mixture']}"]
           if "mixture" in meta.get("extra", {}) else []),
-        *([f"- task specs (kind, multi, language), equal shares: {meta['extra']['specs']}"]
+        *([f"- task specs (kind, multi, language), one share of every batch each (a spec "
+           f"listed twice has twice the share): {meta['extra']['specs']}"]
           if "specs" in meta.get("extra", {}) else []),
+        f"- diffusion training timesteps: {train_config.get('num_train_timesteps')}, drawn "
+        f"with timestep_power {train_config.get('timestep_power', 1.0)} (1: uniform)",
         f"- training wall time: {last.get('wall_time', float('nan')) / 60:.1f} min on a 2-core "
         f"CPU (last logged loss {last.get('loss', float('nan')):.4f})",
         "- exported with: `python -m experiments.ship_checkpoint` (EMA parameters only)",

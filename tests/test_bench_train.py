@@ -181,7 +181,7 @@ def test_batch_size_follows_the_recipe_mixture():
     from envs.gridworld.training import Recipe as GridRecipe
     from envs.kuka.training import Recipe as KukaRecipe
 
-    assert GridRecipe().batch_multiple == 64 and KukaRecipe().batch_multiple == 8
+    assert GridRecipe().batch_multiple == 64 and KukaRecipe().batch_multiple == 16
     parser = bench_train.build_parser()
     args = parser.parse_args(["--batch-size", "32", "--set",
                               'mixture=[["p_mo2g", 18], ["mo1g", 9], ["1o1g", 5]]'])

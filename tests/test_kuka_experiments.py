@@ -234,6 +234,23 @@ def test_ship_kuka_checkpoint_with_its_note(train_dir, tmp_path):
                           "--results", str(out / "r.json")])
     note = (dest / "NOTE.md").read_text()
     assert "kuka_stacking --train" in note and "task specs" in note and "SR_Diff" in note
-    assert "python -m experiments.kuka_rearrangement --episodes 4 --seed 6" in note
+    assert ("python -m experiments.kuka_rearrangement --episodes 4 --seed 6 --modes on_the_fly"
+            in note)
+    assert "timestep_power" in note
     denoiser = kuka_spec.load_checked(str(dest), kuka_spec.NUM_STEPS, "stacking")
     assert denoiser.plan_shape == (24, 24, 3)
+
+
+def test_note_commands_carry_the_kuka_flags_a_result_departs_in():
+    """A NOTE's command reproduces its table: --modes, --carry and --reader when not the
+    defaults, nothing added when they are."""
+    from experiments.ship_checkpoint import _result_command
+
+    base = {"experiment": "kuka_stacking", "episodes": 70, "seeds": [2001, 2002, 2003],
+            "language": "all", "modes": ["on_the_fly", "one_shot"], "carry": "path",
+            "reader": None}
+    assert _result_command(base) == ("python -m experiments.kuka_stacking --episodes 70 "
+                                     "--seeds 2001,2002,2003 --language all")
+    read = dict(base, modes=["on_the_fly"], carry="arc", reader="checkpoints/kuka_reader")
+    assert _result_command(read).endswith(
+        "--language all --modes on_the_fly --carry arc --reader checkpoints/kuka_reader")

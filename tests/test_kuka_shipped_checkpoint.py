@@ -48,13 +48,13 @@ def test_checkpoint_is_the_default_model_of_the_recipe(denoiser):
     assert denoiser.model_config == ks.model_config("default")
     assert denoiser.prediction == ks.PREDICTION
     extra = read_metadata(ks.DEFAULT_CHECKPOINT)["extra"]
-    # Checkpoints record their vocabulary since the phrasing split; this one predates it and
-    # is checked by its vocabulary size (the split kept the Kuka words).
-    want = {k: v for k, v in Recipe().metadata().items() if k != "vocabulary"}
-    assert {k: extra[k] for k in want} == want
-    assert extra.get("vocabulary", list(grammar.VOCAB)) == list(grammar.VOCAB)
+    assert extra == {**Recipe().metadata(), "model_size": "default"}
+    assert extra["vocabulary"] == list(grammar.VOCAB)
     assert vocabulary_mismatch(read_metadata(ks.DEFAULT_CHECKPOINT),
                                denoiser.model_config.vocab_size, grammar.VOCAB) is None
+    # How often it was checkpointed does not change the model.
+    stored = dict(read_metadata(ks.DEFAULT_CHECKPOINT)["train_config"], checkpoint_every=0)
+    assert stored == dict(ks.train_config().to_dict(), checkpoint_every=0)
 
 
 def test_on_the_fly_strict_sr_on_fresh_episodes(denoiser):

@@ -143,6 +143,27 @@ def test_planner_goal_build_orders():
     assert goal([(1, 2), (3, 1), (2, 0)], True) == [[2, 0], [1, 2], [3, 1]]
 
 
+def test_the_denoiser_mixture_weights_the_eight_specs():
+    """The default recipe trains on every spec of the even mixture, in its order, with the
+    shares the docstring names; a Kuka batch of 32 holds whole shares."""
+    from experiments import kuka_spec
+
+    specs = training.Recipe().specs
+    assert specs == training.DENOISER_SPECS
+    assert list(dict.fromkeys(specs)) == list(training.SPECS)
+    shares = {(s.language, s.kind, s.multi): specs.count(s) for s in training.SPECS}
+    assert shares == {("canonical", "stacking", False): 2,
+                      ("canonical", "rearrangement", False): 1,
+                      ("canonical", "stacking", True): 1, ("canonical", "rearrangement", True): 1,
+                      ("paraphrased", "stacking", False): 2,
+                      ("paraphrased", "rearrangement", False): 1,
+                      ("paraphrased", "stacking", True): 3,
+                      ("paraphrased", "rearrangement", True): 5}
+    assert kuka_spec.TRAIN_BATCH % len(specs) == 0
+    config = kuka_spec.train_config()
+    assert config.num_train_timesteps >= kuka_spec.NUM_STEPS and config.timestep_power == 3.0
+
+
 @pytest.mark.parametrize("spec", training.SPECS[:4], ids=lambda s: s.name)
 def test_training_examples_are_the_experts_next_placement(spec):
     keys = jax.random.split(jax.random.PRNGKey(7), 16)
