@@ -81,21 +81,21 @@ def test_train_dir_of_other_settings_is_refused_in_one_line(tmp_path, capsys):
 
 @pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 def test_bench_train_kuka_tiny_run(tmp_path):
-    """Kuka: the time split of a step, then 2 steps of a tiny model (batch 8, one example per
-    task spec), evaluated on kf.BATCH validation episodes per Table 2 column with on-the-fly
-    planning under physics (the tiny model's rollout at batch kf.BATCH, the program of
-    test_kuka_experiments' planner runs)."""
+    """Kuka: the time split of a step, then 2 steps of a tiny model (batch 16, one example per
+    share of the default mixture), evaluated on kf.BATCH validation episodes per Table 2
+    column with on-the-fly planning under physics (the tiny model's rollout at batch kf.BATCH,
+    the program of test_kuka_experiments' planner runs)."""
     from envs.kuka.config import COLUMNS
 
     result = bench_train.main(["--world", "kuka", "--train-dir", str(tmp_path / "t"),
                                "--eval-every", "2", "--max-steps", "2",
-                               "--episodes", str(kf.BATCH), "--batch-size", "8", "--target",
+                               "--episodes", str(kf.BATCH), "--batch-size", "16", "--target",
                                "0", *TINY, "--split", *SPLIT, "--json", str(tmp_path / "k.json")])
-    _check_split(result["split"], 8)
+    _check_split(result["split"], 16)
     data = json.loads((tmp_path / "k.json").read_text())
     assert data == json.loads(json.dumps(result))
     assert data["world"] == "kuka" and data["mode"] == "on_the_fly"
-    assert data["batch_size"] == 8 and data["seed"] == 1000
+    assert data["batch_size"] == 16 and data["seed"] == 1000
     assert data["final_metadata_step"] == 2 and [r["step"] for r in data["rows"]] == [2]
     row = data["rows"][0]
     assert set(row["SR_columns"]) == set(COLUMNS)

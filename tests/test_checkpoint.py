@@ -261,7 +261,7 @@ SHIPPED_PARAMS_SHA256 = {
     # per-setting BCs and CQLs and the Kuka baselines: with the loader of the commit that
     # shipped them).
     "compile_gridworld": "c509cb4abaf8cf405181d1316a84f9ab4e1421adcb7f91d5dfc479dedeb61ed7",
-    "kuka": "f6d5bf148b8ec4c17b0ade4fa540bdc324ccc6d51ab65a7a2c56539a2e89776d",
+    "kuka": "4c7181f0fa4815f57f5ae3c336dcce8f3f0259b6f6a88fed2d04b98b327326b4",
     "baselines/bc/1o1g": "4b594fce64a1db88373af856742d34b3eb8c0478f3baa8f970a444d719757699",
     "baselines/bc/mo1g": "7d0ab37b07ed4fd8a7ccee4a5c8ae069af021b7db70988cbb7ac8b3c26d31b1e",
     "baselines/bc/p_mo2g": "ac0172ff639bf9eb5bbee963c1990877cf5d85fe63bdf468e8d4d6f457a041d5",
