@@ -6,10 +6,11 @@ held-out validation episodes, and the time split of one training step.
     python -m experiments.bench_train --world kuka --split-only --split-seconds 60
 
 Runs the world's default training recipe (gridworld: experiments.compile_p_mo2g --train;
-kuka: experiments.kuka_stacking --train; seed 0; --batch-size changes the examples per step) into --train-dir, pausing every --eval-every steps (the
-training's own checkpoint; diffplan.train resumes bit-exactly) to evaluate the EMA weights on
---episodes validation episodes (seed 1000, never an evaluation seed): P-MO2G episodes in --mode
-(SR, SR_ordered), or, for kuka, --episodes per Table 2 column with on-the-fly planning under MJX
+kuka: experiments.kuka_stacking --train; seed 0; --batch-size changes the examples per step)
+into --train-dir, pausing every --eval-every steps (the training's own checkpoint;
+diffplan.train resumes bit-exactly) to evaluate the EMA weights on --episodes validation
+episodes (seed 1000, never an evaluation seed): P-MO2G episodes in --mode (SR, SR_ordered), or,
+for kuka, --episodes per Table 2 column with on-the-fly planning under MJX
 physics (strict SR per column, contract 4). Reports for every evaluation the training wall time
 so far (the checkpoint's recorded time: training only, evaluations excluded) and the first step
 at which every --target-metric >= --target (kuka: strict SR in all four columns). --max-steps

@@ -173,12 +173,12 @@ class Recipe:
     specs: the task specs (default :data:`DENOISER_SPECS`), each with the same share of every
     batch (the batch size must be a multiple of their number); a spec may also be given as its
     fields ``(kind, multi, language)``, as checkpoints record it (what ``bench_train --set
-    specs=[[...], ...]`` passes); list a spec twice to give it twice the share. perturb_prob: the share of
-    examples whose moved blocks are perturbed. goal_loss_weight: the weight of the goal and
-    pick channels in the loss relative to the path channel's. role_loss_weight: 0, or the
-    weight of an auxiliary loss (``diffplan.losses.token_loss``) that asks the denoiser's token
-    head which block each block word of a relation names, the upper or the lower
-    (``grammar.token_roles``); it needs a denoiser with ``token_classes=2``.
+    specs=[[...], ...]`` passes); list a spec twice to give it twice the share.
+    perturb_prob: the share of examples whose moved blocks are perturbed. goal_loss_weight:
+    the weight of the goal and pick channels in the loss relative to the path channel's.
+    role_loss_weight: 0, or the weight of an auxiliary loss (``diffplan.losses.token_loss``)
+    that asks the denoiser's token head which block each block word of a relation names, the
+    upper or the lower (``grammar.token_roles``); it needs a denoiser with ``token_classes=2``.
     """
 
     specs: tuple = DENOISER_SPECS
