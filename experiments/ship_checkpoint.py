@@ -16,7 +16,7 @@ import argparse
 import json
 import os
 
-from experiments import gridworld_eval, kuka_eval
+from experiments import gridworld_eval, kuka_eval, kuka_spec as ks
 from experiments.gridworld_spec import FAR_TRAINING_NAME, MODE_REPLAN, TRAINING_NAME
 from experiments.harness import CHECKPOINT_ROOT
 
@@ -57,6 +57,18 @@ def _result_table(result) -> str:
     return gridworld_eval.format_table(result["rows"])
 
 
+def _kuka_flags(result) -> str:
+    """The Kuka CLIs' own flags, where a result departs from their defaults."""
+    flags = ""
+    if result.get("modes") and tuple(result["modes"]) != ks.MODES:
+        flags += f" --modes {','.join(result['modes'])}"
+    if result.get("carry", ks.CARRIES[0]) != ks.CARRIES[0]:
+        flags += f" --carry {result['carry']}"
+    if result.get("reader"):
+        flags += f" --reader {result['reader']}"
+    return flags
+
+
 def _result_command(result) -> str:
     seeds = result.get("seeds") or [result["seed"]]
     seed_flag = (f"--seeds {','.join(map(str, seeds))}" if len(seeds) > 1
@@ -71,13 +83,8 @@ def _result_command(result) -> str:
         extra += f" --psi {result['psi']}"
     if result.get("samples", 1) > 1:
         extra += f" --samples {result['samples']}"
-    # The Kuka CLIs' own flags, where a result departs from their defaults.
-    if result.get("modes") and list(result["modes"]) != ["on_the_fly", "one_shot"]:
-        extra += f" --modes {','.join(result['modes'])}"
-    if result.get("carry", "path") != "path":
-        extra += f" --carry {result['carry']}"
-    if result.get("reader"):
-        extra += f" --reader {result['reader']}"
+    if str(result.get("experiment", "")).startswith("kuka_"):
+        extra += _kuka_flags(result)
     return (f"python -m experiments.{result['experiment']} --episodes {result['episodes']} "
             f"{seed_flag}{extra}")
 

@@ -47,13 +47,13 @@ def test_checkpoint_is_the_default_model_of_the_recipe(denoiser):
 
     assert denoiser.model_config == ks.model_config("default")
     assert denoiser.prediction == ks.PREDICTION
-    extra = read_metadata(ks.DEFAULT_CHECKPOINT)["extra"]
+    metadata = read_metadata(ks.DEFAULT_CHECKPOINT)
+    extra = metadata["extra"]
     assert extra == {**Recipe().metadata(), "model_size": "default"}
     assert extra["vocabulary"] == list(grammar.VOCAB)
-    assert vocabulary_mismatch(read_metadata(ks.DEFAULT_CHECKPOINT),
-                               denoiser.model_config.vocab_size, grammar.VOCAB) is None
+    assert vocabulary_mismatch(metadata, denoiser.model_config.vocab_size, grammar.VOCAB) is None
     # How often it was checkpointed does not change the model.
-    stored = dict(read_metadata(ks.DEFAULT_CHECKPOINT)["train_config"], checkpoint_every=0)
+    stored = dict(metadata["train_config"], checkpoint_every=0)
     assert stored == dict(ks.train_config().to_dict(), checkpoint_every=0)
 
 
