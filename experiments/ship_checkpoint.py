@@ -51,8 +51,13 @@ WORLDS = {
 }
 
 
+def _is_kuka(result) -> bool:
+    """Whether a result is a Kuka CLI's (kuka_stacking, kuka_rearrangement)."""
+    return str(result.get("experiment", "")).startswith("kuka_")
+
+
 def _result_table(result) -> str:
-    if str(result.get("experiment", "")).startswith("kuka_"):
+    if _is_kuka(result):
         return kuka_eval.format_table(result["rows"])
     return gridworld_eval.format_table(result["rows"])
 
@@ -83,7 +88,7 @@ def _result_command(result) -> str:
         extra += f" --psi {result['psi']}"
     if result.get("samples", 1) > 1:
         extra += f" --samples {result['samples']}"
-    if str(result.get("experiment", "")).startswith("kuka_"):
+    if _is_kuka(result):
         extra += _kuka_flags(result)
     return (f"python -m experiments.{result['experiment']} --episodes {result['episodes']} "
             f"{seed_flag}{extra}")
