@@ -152,3 +152,43 @@ def test_unmarked_plans_are_planned_again_once_then_counted_as_fallbacks(episode
 def test_bad_psi_kind_is_refused():
     with pytest.raises(ValueError, match="psi_kind"):
         GridTask(make_config("p_mo2g"), psi_kind="teleport")
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 15), st.integers(0, 2 ** 30), st.sampled_from([-0.8, -0.5, 0.3]))
+def test_a_lower_mark_is_the_same_psi_on_a_shifted_path_channel(i, seed, mark):
+    """Reading path > mark as marked is psi_follow (and unfollowable) with the default mark
+    on a path channel lowered by mark: the threshold moves, nothing else does."""
+    state = jax.tree.map(lambda x: x[i], _states())
+    rng = np.random.default_rng(seed)
+    plan = rng.uniform(-0.9, 0.9, (16, 16, 3)).astype(np.float32)
+    visited = np.asarray(state.visited) | (rng.uniform(size=(16, 16)) < 0.3)
+    state = state.replace(visited=jnp.asarray(visited))
+    shifted = plan - np.array([mark, 0, 0], np.float32)
+    follow = jax.jit(psi_follow, static_argnums=(2, 3))
+    unfollow = jax.jit(unfollowable, static_argnums=(2, 3))
+    assert int(follow(state, plan, True, mark)) == int(follow(state, shifted, True, 0.0))
+    assert bool(unfollow(state, plan, True, mark)) == bool(unfollow(state, shifted, True, 0.0))
+
+
+def test_faint_marks_are_followed_only_below_the_mark(episodes):
+    """A shortest route marked -0.5 instead of +1: with the default mark every move falls
+    back; with follow_mark -0.8 the route carries the agent without fallbacks."""
+    def faint(params, x_t, t, tokens):
+        out = _path_oracle_apply(params, x_t, t, tokens)
+        return out.at[..., 0].set(jnp.where(out[..., 0] > 0, -0.5, -1.0))
+
+    config = PlannerConfig(mode="on_the_fly", num_steps=2, warm_start_step=1)
+    planner = Planner(as_denoiser(faint, "x0"), config)
+    r = _run(planner, FOLLOW, episodes)
+    np.testing.assert_array_equal(r.fallback_moves, r.steps)
+    low = GridTask(make_config("p_mo2g"), psi_kind="follow", follow_mark=-0.8)
+    r = _run(planner, low, episodes)
+    assert r.final_state.success.all() and r.final_state.reached_reference.all()
+    np.testing.assert_array_equal(r.fallback_moves, 0)
+
+
+def test_a_mark_outside_the_path_range_is_refused():
+    for mark in (1.0, -1.5, float("nan")):
+        with pytest.raises(ValueError, match="follow_mark"):
+            GridTask(make_config("p_mo2g"), psi_kind="follow", follow_mark=mark)

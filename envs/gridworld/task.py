@@ -59,6 +59,10 @@ PATH_CHANNEL, GOAL_CHANNEL, SUBGOAL_CHANNEL = (NUM_COND_CHANNELS, NUM_COND_CHANN
                                                NUM_COND_CHANNELS + 2)
 AVOID_GOAL_COST = 50.0
 """Extra cost of entering the goal estimate's cell while heading for a different sub-goal."""
+FOLLOW_MARK = 0.0
+"""psi_follow reads a cell as marked when its path value is above this: the middle of the
+channel's [-1, 1]. Lower values (``GridTask(follow_mark=...)``) also follow the faint marks a
+drawn path leaves where it has a gap (docs/results.md: -0.8 measured on validation only)."""
 
 
 def condition_from_observation(obs: env.Observation):
@@ -167,13 +171,15 @@ def _follow_targets(state: env.State, plan, use_goal_channel: bool = True):
     return heading, jnp.where(jnp.any(goal != heading), goal, -1).astype(jnp.int32)
 
 
-def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True, targets=None):
+def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True, targets=None,
+                       mark: float = FOLLOW_MARK):
     """What psi_follow weighs: (cells int32 (4, 2) the neighbours N, E, S, W, legal bool (4,)
     on the grid and not known obstacles (nor the goal estimate's cell while the sub-goal is
     elsewhere), score float32 (4,) the path value of the candidates (-inf elsewhere): the
-    marked (path > 0) unvisited neighbours, or the marked visited ones when there are none,
+    marked (path > mark) unvisited neighbours, or the marked visited ones when there are none,
     heading int32 (2,) the cell the plan heads for, ahead bool () some unvisited neighbour is
-    marked). targets: :func:`_follow_targets` if already known."""
+    marked). targets: :func:`_follow_targets` if already known. mark: a cell whose path value
+    is above it is marked (:data:`FOLLOW_MARK`)."""
     h, w = state.grid.shape
     cells, inside = bfs.neighbours(state.agent, (h, w))
     r = jnp.clip(cells[:, 0], 0, h - 1)
@@ -185,20 +191,21 @@ def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True, ta
     if avoid_cell is not None:
         legal = legal & ~jnp.all(cells == avoid_cell, axis=-1)
     path = plan[..., 0][r, c]
-    marked = legal & (path > 0)
+    marked = legal & (path > mark)
     fresh = marked & ~state.visited[r, c]
     use = jnp.where(fresh.any(), fresh, marked)
     return cells, legal, jnp.where(use, path, -jnp.inf), heading, fresh.any()
 
 
-def unfollowable(state: env.State, plan, use_goal_channel: bool = True):
+def unfollowable(state: env.State, plan, use_goal_channel: bool = True,
+                 mark: float = FOLLOW_MARK):
     """bool (): the plan marks no legal neighbour of the agent as path (psi_follow falls
     back)."""
-    _, _, score, _, _ = _follow_candidates(state, plan, use_goal_channel)
+    _, _, score, _, _ = _follow_candidates(state, plan, use_goal_channel, mark=mark)
     return ~jnp.any(jnp.isfinite(score))
 
 
-def _replay_moves(state: env.State, plan, use_goal_channel, targets):
+def _replay_moves(state: env.State, plan, use_goal_channel, targets, mark=FOLLOW_MARK):
     """int32 (): moves from the agent to targets' heading taking, at every move, the unvisited
     neighbour the plan marks most strongly (:func:`_follow_candidates`); -1 if that does not
     arrive within 2 (H + W) moves."""
@@ -213,7 +220,8 @@ def _replay_moves(state: env.State, plan, use_goal_channel, targets):
     def body(carry):
         # Where psi cannot step on (nothing ahead) the walk ends: it would stay put.
         s, moves, _, _ = carry
-        cells, _, score, _, ahead = _follow_candidates(s, plan, use_goal_channel, targets)
+        cells, _, score, _, ahead = _follow_candidates(s, plan, use_goal_channel, targets,
+                                                       mark)
         nxt = jnp.where(ahead, cells[jnp.argmax(score)], s.agent).astype(jnp.int32)
         s = s.replace(agent=nxt, visited=s.visited | env._cell_mask(nxt, w))
         return s, moves + ahead.astype(jnp.int32), jnp.all(nxt == heading), ~ahead
@@ -223,25 +231,27 @@ def _replay_moves(state: env.State, plan, use_goal_channel, targets):
     return jnp.where(arrived, moves, -1).astype(jnp.int32)
 
 
-def _branch_moves(state: env.State, plan, use_goal_channel, targets):
+def _branch_moves(state: env.State, plan, use_goal_channel, targets, mark=FOLLOW_MARK):
     """(moves int32 (4,), score float32 (4,), cells, legal, heading): for each neighbour N, E,
     S, W that psi_follow may step onto (score finite, :func:`_follow_candidates`), 1 + the
     moves of :func:`_replay_moves` from there: the moves to the heading along that branch of
     the plan's marks; -1 for a branch that does not arrive and for the other neighbours."""
-    cells, legal, score, heading, _ = _follow_candidates(state, plan, use_goal_channel, targets)
+    cells, legal, score, heading, _ = _follow_candidates(state, plan, use_goal_channel, targets,
+                                                         mark)
     w = state.grid.shape[1]
     inside = jnp.clip(cells, 0, jnp.array(state.grid.shape) - 1).astype(jnp.int32)
 
     def from_cell(cell):
         s = state.replace(agent=cell, visited=state.visited | env._cell_mask(cell, w))
-        return _replay_moves(s, plan, use_goal_channel, targets)
+        return _replay_moves(s, plan, use_goal_channel, targets, mark)
 
     moves = jax.vmap(from_cell)(inside)
     ok = jnp.isfinite(score) & (moves >= 0)
     return jnp.where(ok, moves + 1, -1).astype(jnp.int32), score, cells, legal, heading
 
 
-def follow_moves(state: env.State, plan, use_goal_channel: bool = True):
+def follow_moves(state: env.State, plan, use_goal_channel: bool = True,
+                 mark: float = FOLLOW_MARK):
     """int32 (): the moves psi_follow would take along this plan (plan float32 (H, W, G)) from
     the agent to the cell the plan heads for (:func:`goal_estimate`), replayed on what the
     agent knows (unseen cells free): its first move onto the branch of the plan's marks that
@@ -250,13 +260,14 @@ def follow_moves(state: env.State, plan, use_goal_channel: bool = True):
     stop beside unmarked cells, step back onto its track, or walk off along another leg of
     the path). The rule is psi_follow's own, not a search over the map."""
     targets = _follow_targets(state, plan, use_goal_channel)
-    moves = _branch_moves(state, plan, use_goal_channel, targets)[0]
+    moves = _branch_moves(state, plan, use_goal_channel, targets, mark)[0]
     big = jnp.iinfo(jnp.int32).max
     best = jnp.min(jnp.where(moves >= 0, moves, big))
     return jnp.where(best < big, best, -1).astype(jnp.int32)
 
 
-def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
+def psi_follow(state: env.State, plan, use_goal_channel: bool = True,
+               mark: float = FOLLOW_MARK):
     """The paper's psi: the move (int32 () in 0..3) onto the legal neighbour the plan marks
     most strongly as path (ties to the lowest move index N, E, S, W), among the marked
     neighbours from which the plan's marks lead on to the cell it heads for
@@ -265,7 +276,8 @@ def psi_follow(state: env.State, plan, use_goal_channel: bool = True):
     legal neighbour nearest (in moves, obstacles ignored) to the cell the plan heads for (move
     0 if no neighbour is legal). See the module docstring."""
     targets = _follow_targets(state, plan, use_goal_channel)
-    moves, score, cells, legal, heading = _branch_moves(state, plan, use_goal_channel, targets)
+    moves, score, cells, legal, heading = _branch_moves(state, plan, use_goal_channel, targets,
+                                                        mark)
     arriving = jnp.where(moves >= 0, score, -jnp.inf)
     follow = jnp.where(jnp.any(moves >= 0), jnp.argmax(arriving), jnp.argmax(score))
     distance = jnp.abs(cells - heading[None, :]).sum(-1)
@@ -308,6 +320,8 @@ class GridTask:
     num_gen_channels: G of the denoiser that plans it (3, or 2 for models without a sub-goal).
     psi_kind: "search" (:func:`psi`) or "follow" (the paper's psi, :func:`psi_follow`; the
       rollout then plans again where the plan marks no neighbour, ``follows_plan``).
+    follow_mark: the path value above which psi_follow reads a cell as marked
+      (:data:`FOLLOW_MARK`).
     """
 
     config: GridConfig
@@ -325,6 +339,7 @@ class GridTask:
     num_cond_channels: int = NUM_COND_CHANNELS
     num_gen_channels: int = NUM_GEN_CHANNELS
     psi_kind: str = "search"
+    follow_mark: float = FOLLOW_MARK
 
     def __post_init__(self):
         if self.num_cond_channels != NUM_COND_CHANNELS:
@@ -337,6 +352,8 @@ class GridTask:
             raise ValueError(f"path_weight must be >= 0, got {self.path_weight}")
         if self.psi_kind not in PSI_KINDS:
             raise ValueError(f"psi_kind must be one of {PSI_KINDS}, got {self.psi_kind!r}")
+        if not -1 <= self.follow_mark < 1:
+            raise ValueError(f"follow_mark must be in [-1, 1), got {self.follow_mark}")
 
     @property
     def follows_plan(self) -> bool:
@@ -358,12 +375,12 @@ class GridTask:
 
     def psi(self, state: env.State, plan):
         if self.follows_plan:
-            return psi_follow(state, plan, self.use_goal_channel)
+            return psi_follow(state, plan, self.use_goal_channel, self.follow_mark)
         return psi(state, plan, self.path_weight, self.use_goal_channel)
 
     def unfollowable(self, state: env.State, plan):
         """bool (): psi_follow would fall back on this plan (used when follows_plan)."""
-        return unfollowable(state, plan, self.use_goal_channel)
+        return unfollowable(state, plan, self.use_goal_channel, self.follow_mark)
 
     def step(self, state: env.State, action):
         return env.step(state, action, self.config)
@@ -387,7 +404,8 @@ class GridTask:
         track, or off along the path's other leg)."""
         refuted = plan_refuted(state, plan, self.config.has_reference, self.use_goal_channel)
         if self.follows_plan:
-            refuted = refuted | (follow_moves(state, plan, self.use_goal_channel) < 0)
+            refuted = refuted | (follow_moves(state, plan, self.use_goal_channel,
+                                              self.follow_mark) < 0)
         return refuted
 
     def plan_cost(self, state: env.State, plan):
@@ -398,7 +416,7 @@ class GridTask:
         from its sub-goal) also costs REFUTED_PLAN_COST more."""
         cost = plan_cost(state, plan, self.config.has_reference, self.use_goal_channel)
         if self.follows_plan:
-            moves = follow_moves(state, plan, self.use_goal_channel)
+            moves = follow_moves(state, plan, self.use_goal_channel, self.follow_mark)
             cost = cost + REFUTED_PLAN_COST * (moves < 0)
         return cost
 
