@@ -56,6 +56,7 @@ def _result(spec, args, seeds, modes, main_mode, checkpoint, train_seconds, rows
         "noise": "fresh" if spec.fresh_noise else "episode",
         "eta": spec.eta,
         "psi": spec.psi,
+        "follow_mark": spec.follow_mark,
         "samples": spec.samples,
         "replan": {mode: spec.replan_of(mode) for mode in modes if mode in MODE_REPLAN},
         "trajectories_method": METHOD_NAMES[main_mode],
@@ -72,6 +73,7 @@ def _print_summary(spec, args, seeds, result) -> None:
           f"{','.join(map(str, seeds))}, {spec.num_steps} denoising steps per plan (warm start: "
           f"{result['warm_num_steps']}-step schedule from step {spec.warm_start_step}), "
           f"checkpoint {result['checkpoint']}, psi {spec.psi}"
+          + (f" (marked: path > {spec.follow_mark:g})" if spec.psi == "follow" else "")
           + (f", best of {spec.samples} plans" if spec.samples > 1 else "")
           + (f"\n{triggers}" if triggers else ""))
     excluded = sum(result["excluded_training_episodes"].values())
@@ -141,7 +143,8 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                                warm_start_step=args.warm_start_step,
                                warm_num_steps=args.warm_num_steps,
                                fresh_noise=args.noise == "fresh", eta=args.eta,
-                               replan=args.replan, psi=args.psi, samples=args.samples)
+                               replan=args.replan, psi=args.psi, samples=args.samples,
+                               follow_mark=args.follow_mark)
     from diffplan.jax_cache import enable_compilation_cache
 
     enable_compilation_cache()

@@ -67,6 +67,11 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "the plan marks most strongly as path; where none is marked plan again "
                         "once, then step greedily toward the sub-goal; the table's fb%% column "
                         f"is the share of such fallback moves) (default {spec.psi})")
+    p.add_argument("--follow-mark", type=float, default=spec.follow_mark,
+                   help="with --psi follow: the path value (the channel spans [-1, 1]) above "
+                        "which a neighbour counts as marked by the plan; lower values also "
+                        "follow the faint marks a drawn path leaves where it has a gap "
+                        f"(default {spec.follow_mark:g})")
     p.add_argument("--samples", type=int, default=spec.samples,
                    help="plans drawn from different noise each time a plan is made; of "
                         "several, the one heading for the cell nearest the agent (over cells "
@@ -158,6 +163,10 @@ def check_args(parser, args, spec):
     if bad or not modes:
         parser.error(f"unknown --modes {bad}; choose from {MODES}")
     args.baselines = check_baselines(parser, args.baselines)
+    if not -1 <= args.follow_mark < 1:
+        parser.error(f"--follow-mark must be in [-1, 1), got {args.follow_mark}")
+    if args.psi != "follow" and args.follow_mark != spec.follow_mark:
+        parser.error("--follow-mark sets the follow psi's threshold: it needs --psi follow")
     if args.posterior_denoiser and args.psi != "search":
         parser.error("--posterior-denoiser plans no path, so it serves --psi search only")
     return modes

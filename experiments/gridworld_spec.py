@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
+from envs.gridworld.task import FOLLOW_MARK
 from experiments import recipes
 from experiments import harness
 from experiments.harness import CHECKPOINT_ROOT, REPO_ROOT
@@ -91,6 +92,8 @@ class ExperimentSpec:
     # psi (envs.gridworld.task.PSI_KINDS): "search" (Dijkstra toward the sub-goal, the plan's
     # path cheaper) or "follow" (the paper's: the neighbour the plan marks most strongly).
     psi: str = "search"
+    # The path value above which the follow psi reads a cell as marked (GridTask.follow_mark).
+    follow_mark: float = FOLLOW_MARK
     # Plans drawn per re-plan, the nearest guess kept (PlannerConfig.samples).
     samples: int = 1
 
@@ -111,7 +114,7 @@ class ExperimentSpec:
         from envs.gridworld.task import NUM_GEN_CHANNELS, GridTask
         return GridTask(make_config(self.setting), use_goal_channel=self.goal_channel,
                         num_gen_channels=num_gen_channels or NUM_GEN_CHANNELS,
-                        psi_kind=self.psi)
+                        psi_kind=self.psi, follow_mark=self.follow_mark)
 
     def model_config(self, size: str = "default"):
         from envs.gridworld import grammar

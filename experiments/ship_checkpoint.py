@@ -86,6 +86,8 @@ def _result_command(result) -> str:
         extra += f" --replan {triggers.pop()[1]}"
     if result.get("psi", "search") != "search":
         extra += f" --psi {result['psi']}"
+        if "follow_mark" in result:
+            extra += f" --follow-mark {result['follow_mark']:g}"
     if result.get("samples", 1) > 1:
         extra += f" --samples {result['samples']}"
     if _is_kuka(result):

@@ -8,7 +8,8 @@ gridworld/p_mo2g. The keys every task takes: task, checkpoint, modes (one planni
 num_steps, seed, episodes, batch_size. The grid world's: setting, eta, warm_start_step,
 warm_num_steps, noise ("fresh" | "episode"), replan ("always" | "on_change" | "on_refuted";
 missing: the mode's own, as in the experiment CLIs), language, psi ("search" | "follow", the
-CLIs' --psi), samples (plans drawn per re-plan, the nearest guess kept: the CLIs' --samples),
+CLIs' --psi), follow_mark (the follow psi's threshold, the CLIs' --follow-mark), samples (plans
+drawn per re-plan, the nearest guess kept: the CLIs' --samples),
 denoiser ("learned": the checkpoint's; "posterior": envs.gridworld.posterior's, which learns
 nothing and guesses the hidden target exactly, the CLIs' --posterior-denoiser rows).
 The Kuka world's: multi (several instructed relations: the multi-constraint column),
@@ -34,6 +35,7 @@ GRID_DEFAULTS = {"setting": "p_mo2g", "checkpoint": None, "modes": "on_the_fly",
                  "warm_num_steps": _SPEC.warm_num_steps or _SPEC.num_steps,
                  "noise": "fresh" if _SPEC.fresh_noise else "episode", "replan": None,
                  "language": "canonical", "psi": _SPEC.psi, "samples": _SPEC.samples,
+                 "follow_mark": _SPEC.follow_mark,
                  "denoiser": "learned",
                  "seed": DEFAULT_EVAL_SEED,
                  "episodes": 1000, "batch_size": _SPEC.eval_batch}
@@ -51,6 +53,7 @@ TYPES = {"task": str, "setting": str, "checkpoint": str, "modes": str, "num_step
          "eta": float, "warm_start_step": int, "warm_num_steps": int, "noise": str,
          "replan": str, "seed": int, "episodes": int, "batch_size": int, "multi": bool,
          "language": str, "carry": str, "psi": str, "samples": int, "denoiser": str,
+         "follow_mark": float,
          "reader": str}
 CHOICES = {"setting": tuple(gs.SPECS), "noise": ("fresh", "episode"),
            "replan": tuple(gs.TRIGGER_WORDS), "language": ks.LANGUAGES, "carry": ks.CARRIES,
@@ -139,6 +142,12 @@ def normalise(raw: dict, index: int) -> dict:
         config["replan"] = gs.SPECS[config["setting"]].replan_of(config["modes"])
     if not 0 <= config["eta"] <= 10:
         raise SweepError(f"configuration {index}: eta must be in [0, 10], got {config['eta']}")
+    if not -1 <= config["follow_mark"] < 1:
+        raise SweepError(f"configuration {index}: follow_mark must be in [-1, 1), "
+                         f"got {config['follow_mark']}")
+    if config["psi"] != "follow" and config["follow_mark"] != GRID_DEFAULTS["follow_mark"]:
+        raise SweepError(f"configuration {index}: follow_mark is the follow psi's threshold: "
+                         f"it needs psi 'follow'")
     if config["denoiser"] == "posterior" and (config["psi"] != "search" or config["checkpoint"]):
         raise SweepError(f"configuration {index}: the posterior denoiser plans no path and "
                          f"loads no checkpoint: it takes psi 'search' and no checkpoint")
@@ -155,7 +164,8 @@ def spec_of(config: dict) -> gs.ExperimentSpec:
         gs.SPECS[config["setting"]], num_steps=config["num_steps"],
         warm_start_step=config["warm_start_step"], warm_num_steps=config["warm_num_steps"],
         fresh_noise=config["noise"] == "fresh", eta=config["eta"], replan=config["replan"],
-        language=config["language"], psi=config["psi"], samples=config["samples"])
+        language=config["language"], psi=config["psi"], samples=config["samples"],
+        follow_mark=config["follow_mark"])
 
 
 def planner_config(config: dict):

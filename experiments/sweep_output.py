@@ -8,7 +8,7 @@ import numpy as np
 
 CSV_FIELDS = ("task", "setting", "modes", "num_steps", "eta", "warm_num_steps",
               "warm_start_step", "noise", "replan", "multi", "language", "carry", "psi",
-              "samples", "denoiser",
+              "follow_mark", "samples", "denoiser",
               "seed", "episodes", "checkpoint", "reader", "SR", "SR_ordered", "SR_diffuser", "GD",
               "path_precision", "path_recall", "path_f1", "SPL", "fallback_percent",
               "settle_changed", "denoiser_calls_per_episode", "seconds", "compile_seconds",
@@ -51,7 +51,7 @@ def label(row) -> str:
             + (f" eta{row['eta']:g}" if row["eta"] else "")
             + (f" {row['language']}" if row.get("language", "canonical") != "canonical"
                else "")
-            + (" follow" if row.get("psi") == "follow" else "")
+            + (f" follow>{row.get('follow_mark', 0):g}" if row.get("psi") == "follow" else "")
             + (f" best of {row['samples']}" if row.get("samples", 1) > 1 else "")
             + (" posterior" if row.get("denoiser") == "posterior" else ""))
 

@@ -234,6 +234,9 @@ BAD_INVOCATIONS = [
     (["--baselines", "bc,bc"], "--baselines must be distinct names"),
     (["--samples", "0"], "--samples"),
     (["--posterior-denoiser", "--psi", "follow"], "--psi search only"),
+    (["--psi", "follow", "--follow-mark", "1"], "--follow-mark must be in [-1, 1)"),
+    (["--psi", "follow", "--follow-mark", "nan"], "--follow-mark must be in [-1, 1)"),
+    (["--follow-mark", "-0.5"], "it needs --psi follow"),
 ]
 
 
@@ -279,6 +282,17 @@ def test_ship_checkpoint_writes_a_loadable_export_with_its_note(tiny_run, tmp_pa
     assert jax.tree.leaves(denoiser.params)
 
 
+def test_a_follow_results_command_names_its_mark():
+    """The NOTE's command of a follow-psi result repeats the mark it ran with, so the command
+    reproduces it whatever the default; a search result names neither."""
+    from experiments.ship_checkpoint import _result_command
+
+    base = {"experiment": "compile_p_mo2g", "episodes": 10, "seed": 1000}
+    assert _result_command({**base, "psi": "follow", "follow_mark": -0.8}).endswith(
+        "--seed 1000 --psi follow --follow-mark -0.8")
+    assert _result_command({**base, "psi": "search", "follow_mark": 0.0}).endswith("--seed 1000")
+
+
 def test_x0_prediction_trains_and_evaluates(tmp_path):
     """--prediction x0: the checkpoint records it and evaluation converts x0 to noise."""
     result = gridworld_cli.main("p_mo2g", ["--train", "--prediction", "x0", "--train-steps", "2",
@@ -320,8 +334,8 @@ def test_psi_follow_reports_its_fallback_moves(tiny_run):
     result = gridworld_cli.main("p_mo2g", [
         "--checkpoint", str(out / "train"), "--episodes", "3", "--seeds", "7,8",
         "--batch-size", "3", "--num-steps", "2", "--modes", "on_the_fly", "--psi", "follow",
-        "--no-progress"])
-    assert result["psi"] == "follow"
+        "--follow-mark", "-0.5", "--no-progress"])
+    assert result["psi"] == "follow" and result["follow_mark"] == -0.5
     row = result["rows"][0]
     assert 0.0 <= row["fallback_percent"] <= 100.0
     assert set(row["per_seed"]) == {"7", "8"} and "fallback_percent" in row["per_seed"]["7"]

@@ -76,6 +76,8 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     ({"task": "kuka/stacking", "num_steps": 500}, "exceeds its schedule"),
     ({"setting": "p_mo2g", "psi": "teleport"}, "psi must be one of"),
     ({"task": "kuka/stacking", "psi": "follow"}, "do not apply to kuka/stacking"),
+    ({"setting": "p_mo2g", "psi": "follow", "follow_mark": 1.5}, "follow_mark must be in"),
+    ({"setting": "p_mo2g", "psi": "search", "follow_mark": -0.5}, "it needs psi 'follow'"),
     ({"setting": "p_mo2g_far", "samples": 0}, "samples must be >= 1"),
     ({"setting": "p_mo2g_far", "denoiser": "posterior", "psi": "follow"}, "posterior denoiser"),
     ({"setting": "p_mo2g_far", "denoiser": "posterior", "checkpoint": "x"}, "no checkpoint"),
@@ -192,6 +194,17 @@ def test_setting_configurations_mean_their_grid_world_task(name):
         spec = sweep_config.spec_of(by_setting)
         assert spec.setting == raw["setting"]
         assert sweep_config.planner_config(by_setting) == spec.planner_config(raw["modes"])
+
+
+def test_follow_mark_reaches_the_task():
+    """A configuration's follow_mark is the threshold of the task its rows run; without it,
+    the task's default."""
+    from envs.gridworld.task import FOLLOW_MARK
+
+    config = sweep_config.normalise({"setting": "mo1g", "psi": "follow", "follow_mark": -0.5}, 0)
+    assert sweep_config.spec_of(config).task().follow_mark == -0.5
+    plain = sweep_config.normalise({"setting": "mo1g", "psi": "follow"}, 0)
+    assert sweep_config.spec_of(plain).task().follow_mark == FOLLOW_MARK
 
 
 def test_command_line_values_expand_for_every_world():
