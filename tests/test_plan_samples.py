@@ -12,7 +12,7 @@ from diffplan import Planner, PlannerConfig, rollout
 from diffplan.planner import SAMPLE_STREAM
 from envs.gridworld.config import make_config
 from envs.gridworld.episode import OBSTACLE_CELL
-from envs.gridworld.task import REFUTED_PLAN_COST, GridTask, plan_cost
+from envs.gridworld.task import FOLLOW_MARK, REFUTED_PLAN_COST, GridTask, plan_cost
 from test_planner import (_open_state, _point_plan, as_denoiser, oracle_planner,  # noqa: F401
                           p_mo2g_episodes)
 from test_replan_refuted import _NoRefutation, _state
@@ -173,9 +173,10 @@ def test_a_follow_task_ranks_a_path_psi_would_follow_there_first():
     assert int(psi_follow(state, beside.at[5, 7, 0].set(-1.0))) == 0  # none arrives: strongest
 
 
-def numpy_replay(known_obstacle, visited, agent, plan, heading, goal):
+def numpy_replay(known_obstacle, visited, agent, plan, heading, goal, mark=FOLLOW_MARK):
     """Plain replay of psi_follow's rule from agent (a cell): moves onto the unvisited
-    neighbour marked most strongly until heading; -1 if it stops or takes 2 (H + W) moves."""
+    neighbour marked most strongly (path value above mark) until heading; -1 if it stops or
+    takes 2 (H + W) moves."""
     visited = visited.copy()
     size = known_obstacle.shape[0]
     visited[agent] = True
@@ -191,7 +192,7 @@ def numpy_replay(known_obstacle, visited, agent, plan, heading, goal):
                 continue
             if (r, c) == goal and goal != heading:
                 continue
-            if plan[r, c, 0] > 0 and plan[r, c, 0] > best_value:
+            if plan[r, c, 0] > mark and plan[r, c, 0] > best_value:
                 best, best_value = (r, c), plan[r, c, 0]
         if best is None:
             return -1
@@ -200,7 +201,7 @@ def numpy_replay(known_obstacle, visited, agent, plan, heading, goal):
     return -1
 
 
-def numpy_branches(known_obstacle, visited, agent, plan):
+def numpy_branches(known_obstacle, visited, agent, plan, mark=FOLLOW_MARK):
     """Plain restatement of psi_follow's first step: (candidates [(move, cell, path value)]:
     the marked unvisited legal neighbours, or the marked visited ones when there are none;
     branch moves {move: 1 + numpy_replay from there, -1 not arriving})."""
@@ -216,13 +217,13 @@ def numpy_branches(known_obstacle, visited, agent, plan):
             continue
         if (r, c) == goal and goal != heading:
             continue
-        if plan[r, c, 0] > 0:
+        if plan[r, c, 0] > mark:
             marked.append((move, (r, c), plan[r, c, 0]))
     fresh = [m for m in marked if not visited[m[1]]]
     candidates = fresh or marked
     branches = {}
     for move, cell, _ in candidates:
-        moves = numpy_replay(known_obstacle, visited, cell, plan, heading, goal)
+        moves = numpy_replay(known_obstacle, visited, cell, plan, heading, goal, mark)
         branches[move] = moves + 1 if moves >= 0 else -1
     return candidates, branches
 

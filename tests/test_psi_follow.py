@@ -172,18 +172,19 @@ def test_a_lower_mark_is_the_same_psi_on_a_shifted_path_channel(i, seed, mark):
 
 
 def test_faint_marks_are_followed_only_below_the_mark(episodes):
-    """A shortest route marked -0.5 instead of +1: with the default mark every move falls
-    back; with follow_mark -0.8 the route carries the agent without fallbacks."""
+    """A shortest route marked -0.5 instead of +1: with follow_mark 0 every move falls back;
+    with the default mark (-0.8) the route carries the agent without fallbacks."""
     def faint(params, x_t, t, tokens):
         out = _path_oracle_apply(params, x_t, t, tokens)
         return out.at[..., 0].set(jnp.where(out[..., 0] > 0, -0.5, -1.0))
 
     config = PlannerConfig(mode="on_the_fly", num_steps=2, warm_start_step=1)
     planner = Planner(as_denoiser(faint, "x0"), config)
-    r = _run(planner, FOLLOW, episodes)
+    high = GridTask(make_config("p_mo2g"), psi_kind="follow", follow_mark=0.0)
+    r = _run(planner, high, episodes)
     np.testing.assert_array_equal(r.fallback_moves, r.steps)
-    low = GridTask(make_config("p_mo2g"), psi_kind="follow", follow_mark=-0.8)
-    r = _run(planner, low, episodes)
+    assert FOLLOW.follow_mark == -0.8
+    r = _run(planner, FOLLOW, episodes)
     assert r.final_state.success.all() and r.final_state.reached_reference.all()
     np.testing.assert_array_equal(r.fallback_moves, 0)
 

@@ -92,8 +92,8 @@ def test_default_warm_start_row_follows_other_phrasings(shipped, language):
 def test_the_papers_psi_carries_the_agent_on_64_p_mo2g_episodes(shipped):
     """With the paper's psi (only stepping along the plan's marks, no search) and re-planning
     when a kept plan is refuted, the warm-start row still solves the episodes in order with few
-    fallback moves (measured 100 / 100 with no fallback move on these 64; 99.90 / 99.90, 0.27% on
-    3 x 1000 evaluation episodes)."""
+    fallback moves (measured 100 / 100 with no fallback move on these 64; 100.0 / 100.0, 0.07%
+    on 3 x 1000 evaluation episodes)."""
     spec, denoiser, _ = shipped
     spec = dataclasses.replace(spec, psi="follow", replan="on_refuted")
     episodes = ge.eval_episodes(spec.grid_config(), 64, seed=4242)
