@@ -28,15 +28,15 @@ grid; as the field of view is at least one cell around the agent, it never colli
 
 ``GridTask(psi_kind="follow")`` is the paper's psi instead (:func:`psi_follow`): the move onto
 the neighbouring legal cell (on the grid, not a known obstacle) that the plan marks most
-strongly as path (path value above :data:`FOLLOW_MARK`, -0.8; cells already visited only
-when no other neighbour is marked), with no search over the map. Where the drawn path forks at the agent's cell (the leg
-after the reference often passes beside it), the marks are read forward along each marked
-branch with this same rule (:func:`_branch_moves`), and the strongest branch that leads to the
-cell the plan heads for is taken. Where no neighbour is marked the rollout plans again
-once (``diffplan.rollouts.move``), and if the second plan marks none either, the agent steps
-greedily toward the cell the plan heads for (the legal neighbour nearest to it in moves,
-ignoring obstacles: no search); such fallback moves are counted. As in the search, while the
-sub-goal is not the goal estimate the goal estimate's cell is not a candidate.
+strongly as path (path value above :data:`FOLLOW_MARK`, -0.8; cells already visited only when no
+other neighbour is marked), with no search over the map. Where the drawn path forks at the
+agent's cell (the leg after the reference often passes beside it), the marks are read forward
+along each marked branch with this same rule (:func:`_branch_moves`), and the strongest branch
+that leads to the cell the plan heads for is taken. Where no neighbour is marked the rollout
+plans again once (``diffplan.rollouts.move``), and if the second plan marks none either, the
+agent steps greedily toward the cell the plan heads for (the legal neighbour nearest to it in
+moves, ignoring obstacles: no search); such fallback moves are counted. As in the search, while
+the sub-goal is not the goal estimate the goal estimate's cell is not a candidate.
 
 The training examples of the denoiser (what each channel's target is) live in
 ``envs.gridworld.training``.
