@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from envs.gridworld.task import PSI_KINDS
+from envs.gridworld.task import PSI_KINDS, check_follow_mark
 from experiments import cli, harness
 from experiments.gridworld_spec import (LANGUAGE_CHOICES, MODE_REPLAN, TRAINING_NAME,
                                         TRIGGER_WORDS, ExperimentSpec)
@@ -163,8 +163,10 @@ def check_args(parser, args, spec):
     if bad or not modes:
         parser.error(f"unknown --modes {bad}; choose from {MODES}")
     args.baselines = check_baselines(parser, args.baselines)
-    if not -1 <= args.follow_mark < 1:
-        parser.error(f"--follow-mark must be in [-1, 1), got {args.follow_mark}")
+    try:
+        check_follow_mark(args.follow_mark, "--follow-mark")
+    except ValueError as e:
+        parser.error(str(e))
     if args.psi != "follow" and args.follow_mark != spec.follow_mark:
         parser.error("--follow-mark sets the follow psi's threshold: it needs --psi follow")
     if args.posterior_denoiser and args.psi != "search":

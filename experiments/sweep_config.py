@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
-from envs.gridworld.task import PSI_KINDS
+from envs.gridworld.task import PSI_KINDS, check_follow_mark
 from experiments import gridworld_spec as gs, kuka_spec as ks
 from experiments.harness import DEFAULT_EVAL_SEED
 
@@ -142,9 +142,10 @@ def normalise(raw: dict, index: int) -> dict:
         config["replan"] = gs.SPECS[config["setting"]].replan_of(config["modes"])
     if not 0 <= config["eta"] <= 10:
         raise SweepError(f"configuration {index}: eta must be in [0, 10], got {config['eta']}")
-    if not -1 <= config["follow_mark"] < 1:
-        raise SweepError(f"configuration {index}: follow_mark must be in [-1, 1), "
-                         f"got {config['follow_mark']}")
+    try:
+        check_follow_mark(config["follow_mark"])
+    except ValueError as e:
+        raise SweepError(f"configuration {index}: {e}") from e
     if config["psi"] != "follow" and config["follow_mark"] != GRID_DEFAULTS["follow_mark"]:
         raise SweepError(f"configuration {index}: follow_mark is the follow psi's threshold: "
                          f"it needs psi 'follow'")

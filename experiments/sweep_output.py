@@ -51,7 +51,7 @@ def label(row) -> str:
             + (f" eta{row['eta']:g}" if row["eta"] else "")
             + (f" {row['language']}" if row.get("language", "canonical") != "canonical"
                else "")
-            + (f" follow>{row.get('follow_mark', 0):g}" if row.get("psi") == "follow" else "")
+            + (f" follow>{row['follow_mark']:g}" if row.get("psi") == "follow" else "")
             + (f" best of {row['samples']}" if row.get("samples", 1) > 1 else "")
             + (" posterior" if row.get("denoiser") == "posterior" else ""))
 

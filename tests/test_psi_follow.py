@@ -157,8 +157,8 @@ def test_bad_psi_kind_is_refused():
 @settings(max_examples=20, deadline=None)
 @given(st.integers(0, 15), st.integers(0, 2 ** 30), st.sampled_from([-0.8, -0.5, 0.3]))
 def test_a_lower_mark_is_the_same_psi_on_a_shifted_path_channel(i, seed, mark):
-    """Reading path > mark as marked is psi_follow (and unfollowable) with the default mark
-    on a path channel lowered by mark: the threshold moves, nothing else does."""
+    """Reading path > mark as marked is psi_follow (and unfollowable) with mark 0 on a path
+    channel lowered by mark: the threshold moves, nothing else does."""
     state = jax.tree.map(lambda x: x[i], _states())
     rng = np.random.default_rng(seed)
     plan = rng.uniform(-0.9, 0.9, (16, 16, 3)).astype(np.float32)

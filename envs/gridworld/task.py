@@ -67,6 +67,13 @@ gap, and a low mark follows the faint marks on. Chosen on validation seed 1000 o
 -0.8 and -0.9 (docs/results.md); ``GridTask(follow_mark=...)`` and ``--follow-mark`` set it."""
 
 
+def check_follow_mark(mark: float, name: str = "follow_mark") -> None:
+    """Raises ValueError unless mark is a path value psi_follow can read, in [-1, 1) (NaN
+    refused); name: what the message calls it (a flag, a key)."""
+    if not -1 <= mark < 1:
+        raise ValueError(f"{name} must be in [-1, 1), got {mark}")
+
+
 def condition_from_observation(obs: env.Observation):
     """float32 (H, W, C) condition channels from an observation."""
     return jnp.concatenate([obs.cells[..., None].astype(jnp.float32),
@@ -354,8 +361,7 @@ class GridTask:
             raise ValueError(f"path_weight must be >= 0, got {self.path_weight}")
         if self.psi_kind not in PSI_KINDS:
             raise ValueError(f"psi_kind must be one of {PSI_KINDS}, got {self.psi_kind!r}")
-        if not -1 <= self.follow_mark < 1:
-            raise ValueError(f"follow_mark must be in [-1, 1), got {self.follow_mark}")
+        check_follow_mark(self.follow_mark)
 
     @property
     def follows_plan(self) -> bool:
