@@ -45,7 +45,9 @@ class State:
     and carrying_tracked are privileged: the agent side never reads them.
     The last step's outcome: reward float32 (), terminated bool (), truncated bool ().
     The agent's side: known uint8 (H, W, 3) each cell as last observed, 0 (unseen) where never
-    seen; image uint8 (7, 7, 3) the last observation (minigrid's ``obs["image"]``).
+    seen; image uint8 (7, 7, 3) the last observation (minigrid's ``obs["image"]``); ruled_out
+    bool (H, W) the cells the agent has faced after an action without the episode ending (so
+    they hold no object the mission names: what the episode's going on told it).
     """
 
     grid: jnp.ndarray
@@ -62,6 +64,7 @@ class State:
     truncated: jnp.ndarray
     known: jnp.ndarray
     image: jnp.ndarray
+    ruled_out: jnp.ndarray
 
     @property
     def done(self):
@@ -100,7 +103,8 @@ def reset(episode: Episode) -> State:
                   tracked=target, carrying_tracked=jnp.array(False),
                   reward=jnp.float32(0), terminated=jnp.array(False),
                   truncated=jnp.array(False), known=known,
-                  image=jnp.zeros((view.VIEW, view.VIEW, 3), jnp.uint8))
+                  image=jnp.zeros((view.VIEW, view.VIEW, 3), jnp.uint8),
+                  ruled_out=jnp.zeros((h, w), bool))
     return _observe(state)
 
 
@@ -146,8 +150,12 @@ def step(state: State, action) -> State:
     success = target[jnp.clip(new_front[0], 0, h - 1), jnp.clip(new_front[1], 0, w - 1)]
     reward = jnp.where(success, 1.0 - 0.9 * (step_count.astype(jnp.float32)
                                              / state.max_steps.astype(jnp.float32)), 0.0)
+    faced = (new_front[0] >= 0) & (new_front[0] < h) & (new_front[1] >= 0) & (new_front[1] < w)
+    ruled_out = state.ruled_out.at[jnp.where(faced & ~success, new_front[0], h),
+                                   new_front[1]].set(True, mode="drop")
     state = state.replace(grid=grid, pos=pos, direction=direction, carrying=carrying,
                           target=target, tracked=tracked, carrying_tracked=carrying_tracked,
                           step_count=step_count, reward=reward.astype(jnp.float32),
-                          terminated=success, truncated=step_count >= state.max_steps)
+                          terminated=success, truncated=step_count >= state.max_steps,
+                          ruled_out=ruled_out)
     return _observe(state)
