@@ -12,7 +12,8 @@ its task (``GridTask``'s ``path_weight``, ``KukaTask``'s ``follow_path``); an un
 refused with a ValueError naming it. ``envs.names()`` lists the registered names;
 ``envs.register(name, factory)`` adds a world of your own (``factory(**overrides) -> (task,
 generate)``). A world's modules are imported only when one of its names is made (the Kuka world
-needs MuJoCo).
+needs MuJoCo, the BabyAI levels minigrid; their ``generate`` resets minigrid on the host through
+``jax.pure_callback``, still jit- and vmap-able).
 """
 from __future__ import annotations
 
@@ -31,6 +32,13 @@ def _gridworld(setting: str) -> Callable[..., World]:
     return factory
 
 
+def _babyai(level: str) -> Callable[..., World]:
+    def factory(**overrides) -> World:
+        from envs.babyai import make
+        return make(level, **overrides)
+    return factory
+
+
 def _kuka(kind: str) -> Callable[..., World]:
     def factory(**overrides) -> World:
         from envs.kuka import make
@@ -45,6 +53,9 @@ _BUILTIN: dict[str, Callable[..., World]] = {
     "gridworld/p_mo2g_far": _gridworld("p_mo2g_far"),
     "kuka/stacking": _kuka("stacking"),
     "kuka/rearrangement": _kuka("rearrangement"),
+    "babyai/goto_local": _babyai("goto_local"),
+    "babyai/goto_obj_maze": _babyai("goto_obj_maze"),
+    "babyai/goto": _babyai("goto"),
 }
 _USER: dict[str, Callable[..., World]] = {}
 
