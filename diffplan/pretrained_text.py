@@ -163,12 +163,16 @@ def parse_config(data: bytes) -> tuple[bert.BertConfig, dict]:
     if position != "absolute":
         raise ValueError(f"unsupported architecture: position_embedding_type {position!r} "
                          f"(only 'absolute')")
+    kinds = {"hidden_act": str, "layer_norm_eps": float}
     names = [f.name for f in dataclasses.fields(bert.BertConfig)]
     try:
-        config = bert.BertConfig(**{k: raw[k] for k in names if k in raw})
+        values = {k: kinds.get(k, int)(raw[k]) for k in names if k in raw}
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"config.json has a BERT field of the wrong kind: {e}") from None
+    try:
+        return bert.BertConfig(**values), raw
     except TypeError as e:
         raise ValueError(f"config.json lacks a BERT field: {e}") from None
-    return config, raw
 
 
 def tensor_name(key: str) -> str:
@@ -249,6 +253,9 @@ def load_text_encoder(directory=None, expected_sha256: Mapping[str, str] | None 
     data = read_files(path)
     hashes = {name: sha256_hex(blob) for name, blob in data.items()}
     manifest = manifest_hashes(path)
+    if manifest is None and directory is None:
+        raise ValueError(f"the shipped text encoder at {path} has no {MANIFEST} to check "
+                         f"its files against")
     if manifest is not None:
         check_hashes(hashes, manifest, f"{path / MANIFEST}")
     if expected_sha256 is not None:
