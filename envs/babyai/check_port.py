@@ -6,7 +6,8 @@ many steps agree on the observation image, reward, terminated and truncated, and
 tests/test_babyai_port.py runs a slice of the same sequences (see its docstring).
 
 Actions are drawn per step from :data:`ACTION_PROBS` (forward most often, every action
-present), and a quarter of the sequences get a step limit inside the sequence (minigrid's
+present), each sequence from a generator of its own (:func:`draw_sequence`), and a quarter of
+the sequences get a step limit inside the sequence (minigrid's
 ``max_steps`` set after reset, the Episode's likewise), so truncation is exercised; sequences
 go on after the episode ends, as minigrid does.
 """
@@ -20,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffplan.jax_cache import enable_compilation_cache
 from envs.babyai import env as port
 from envs.babyai import episode as E
 from envs.babyai import objects as O
@@ -50,29 +52,33 @@ class Recorded:
     length: np.ndarray
 
 
-def draw_sequences(rng: np.random.Generator, n: int, max_steps: int):
-    """(actions int32 (n, MAX_LEN), length int32 (n,), step limit int32 (n,))."""
-    actions = rng.choice(len(ACTION_PROBS), size=(n, MAX_LEN), p=ACTION_PROBS).astype(np.int32)
-    length = rng.integers(MIN_LEN, MAX_LEN + 1, size=n).astype(np.int32)
-    limit = np.where(rng.random(n) < 0.25, rng.integers(5, MAX_LEN + 1, size=n), max_steps)
-    return actions, length, limit.astype(np.int32)
+def draw_sequence(seed: int, level: str, index: int, max_steps: int):
+    """Sequence ``index`` of a level: (actions int32 (MAX_LEN,), length int (the actions that
+    count), step limit int); its own generator, so a slice of the sequences is the same
+    whatever the number drawn."""
+    rng = np.random.default_rng([seed, list(LEVELS).index(level), index])
+    actions = rng.choice(len(ACTION_PROBS), size=MAX_LEN, p=ACTION_PROBS).astype(np.int32)
+    length = int(rng.integers(MIN_LEN, MAX_LEN + 1))
+    limit = int(rng.integers(5, MAX_LEN + 1)) if rng.random() < 0.25 else max_steps
+    return actions, length, limit
 
 
 def record(level: str, n: int, start: int = 0, seed: int = CHECK_SEED) -> Recorded:
     """Plays sequences start .. start + n - 1 of a level in minigrid."""
     config = make_config(level)
     env = E.make_env(config)
-    rng = np.random.default_rng([seed, start, list(LEVELS).index(level)])
-    actions, length, limit = draw_sequences(rng, n, config.max_steps)
+    actions = np.zeros((n, MAX_LEN), np.int32)
+    length = np.zeros(n, np.int32)
     images = np.zeros((n, MAX_LEN + 1, 7, 7, 3), np.uint8)
     rewards = np.zeros((n, MAX_LEN))
     terminated = np.zeros((n, MAX_LEN), bool)
     truncated = np.zeros((n, MAX_LEN), bool)
     episodes = []
     for i in range(n):
+        actions[i], length[i], limit = draw_sequence(seed, level, start + i, config.max_steps)
         episode, _ = E.layout(env, config, seeds.evaluation_seed(seed, start + i))
-        env.max_steps = int(limit[i])
-        episodes.append(episode.replace(max_steps=np.int32(limit[i])))
+        env.max_steps = limit
+        episodes.append(episode.replace(max_steps=np.int32(limit)))
         images[i, 0] = env.gen_obs()["image"]
         for t in range(length[i]):
             obs, rewards[i, t], terminated[i, t], truncated[i, t], _ = env.step(actions[i, t])
@@ -84,27 +90,30 @@ def record(level: str, n: int, start: int = 0, seed: int = CHECK_SEED) -> Record
 @jax.jit
 def play(episodes: E.Episode, actions):
     """The port's (images uint8 (N, T + 1, 7, 7, 3), rewards float32 (N, T), terminated,
-    truncated bool (N, T)) for episodes (N, ...) and actions int32 (N, T)."""
+    truncated bool (N, T), changed bool (N, T) the action changed the grid) for episodes
+    (N, ...) and actions int32 (N, T)."""
 
     def one(episode, acts):
         state = port.reset(episode)
 
         def body(s, a):
-            s = port.step(s, a)
-            return s, (s.image, s.reward, s.terminated, s.truncated)
+            new = port.step(s, a)
+            changed = jnp.any(new.grid != s.grid)
+            return new, (new.image, new.reward, new.terminated, new.truncated, changed)
 
-        _, (images, rewards, term, trunc) = jax.lax.scan(body, state, acts)
-        return jnp.concatenate([state.image[None], images]), rewards, term, trunc
+        _, (images, rewards, term, trunc, changed) = jax.lax.scan(body, state, acts)
+        return jnp.concatenate([state.image[None], images]), rewards, term, trunc, changed
 
     return jax.vmap(one)(episodes, actions)
 
 
 def compare(rec: Recorded) -> dict[str, int]:
-    """Counts of steps (those within each sequence's length) where the port agrees with
-    minigrid: {"sequences", "steps", "image", "reward", "terminated", "truncated", "all",
-    "successes", "truncations"}; the initial observations count as steps of "image" too
-    (reported as "resets")."""
-    images, rewards, term, trunc = jax.device_get(play(rec.episodes, rec.actions))
+    """Counts over the steps within each sequence's length: "steps", and those where the port
+    agrees with minigrid on the "image", "reward", "terminated", "truncated" and on "all" four;
+    "resets" the initial observations that agree (of "sequences"); what the sequences
+    exercised: minigrid's "successes" and "truncations", and the steps whose action changed the
+    grid by "pickup", "drop", "toggle" (door or box)."""
+    images, rewards, term, trunc, changed = jax.device_get(play(rec.episodes, rec.actions))
     valid = np.arange(rec.actions.shape[1])[None, :] < rec.length[:, None]
     same_image = (images[:, 1:] == rec.images[:, 1:]).all(axis=(2, 3, 4))
     same_reward = np.abs(rewards - rec.rewards) <= 1e-6
@@ -117,7 +126,9 @@ def compare(rec: Recorded) -> dict[str, int]:
             "terminated": int((same_term & valid).sum()),
             "truncated": int((same_trunc & valid).sum()), "all": int((every & valid).sum()),
             "successes": int((rec.terminated & valid).sum()),
-            "truncations": int((rec.truncated & valid).sum())}
+            "truncations": int((rec.truncated & valid).sum()),
+            **{O.ACTION_NAMES[a]: int((changed & valid & (rec.actions == a)).sum())
+               for a in (O.PICKUP, O.DROP, O.TOGGLE)}}
 
 
 def main(argv=None) -> int:
@@ -125,6 +136,7 @@ def main(argv=None) -> int:
     parser.add_argument("--sequences", type=int, default=10_000,
                         help="action sequences in all, spread evenly over the levels")
     args = parser.parse_args(argv)
+    enable_compilation_cache()
     per_level = -(-args.sequences // len(LEVELS))
     ok = True
     for level in LEVELS:
