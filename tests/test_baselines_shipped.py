@@ -11,7 +11,7 @@ import os
 import pytest
 
 from diffplan.baselines.policies import BASELINES
-from experiments.baselines_eval import CHECKPOINT_DIR, baseline_rows, policy_directory
+from experiments.gridworld.baselines import CHECKPOINT_DIR, baseline_rows, policy_directory
 
 SEED = 4242
 EPISODES = 64

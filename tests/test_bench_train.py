@@ -8,7 +8,7 @@ import json
 import pytest
 
 import kuka_fixtures as kf
-from experiments import bench_train
+from experiments.bench import train as bench_train
 
 TINY = ["--model-size", "tiny", "--no-progress"]
 SPLIT = ["--split-seconds", "2", "--split-window", "1", "--split-repeats", "2"]
@@ -45,7 +45,7 @@ def test_bench_train_stops_at_target(tmp_path):
 
 def test_every_target_metric_must_reach_the_target():
     """--target-metric SR,SR_ordered asks both; Kuka's SR asks it in every column."""
-    from experiments import bench_train_worlds as bw
+    from experiments.bench import train_worlds as bw
 
     grid, kuka = bw.WORLDS["gridworld"], bw.WORLDS["kuka"]
     row = {"SR": 100.0, "SR_ordered": 98.0}
@@ -60,7 +60,7 @@ def test_every_target_metric_must_reach_the_target():
 def test_train_dir_of_other_settings_is_refused_in_one_line(tmp_path, capsys):
     """A --train-dir holding a training of other settings (here another batch size) ends in
     one line naming the clash, not a traceback."""
-    from experiments import bench_train_worlds as bw
+    from experiments.bench import train_worlds as bw
 
     class Stop(Exception):
         pass
@@ -167,7 +167,7 @@ def test_bench_train_rejects_bad_input_in_one_line(argv, message, capsys):
 def test_settings_reach_the_training_and_the_model():
     """--set FIELD=VALUE changes the TrainConfig or the DenoiserConfig of the world's recipe
     (JSON values, lists as tuples); a shorter run keeps its warm-up within a tenth."""
-    from experiments import bench_train_worlds as bw
+    from experiments.bench import train_worlds as bw
 
     model, config, _ = bw.training(bw.WORLDS["gridworld"], "default", 1,
                                    ["steps=1000", "lr=0.002", "cross_attn_levels=[1, 2]",
@@ -194,7 +194,7 @@ def test_kuka_specs_can_be_set_as_lists():
     spec listed twice has twice the share); a malformed spec is refused, naming it."""
     from envs.kuka.config import TaskSpec
     from envs.kuka.training import Recipe
-    from experiments import bench_train_worlds as bw
+    from experiments.bench import train_worlds as bw
 
     _, _, recipe = bw.training(bw.WORLDS["kuka"], "default", 1, [
         'specs=[["rearrangement", true, "canonical"], ["rearrangement", true, "canonical"], '
@@ -213,7 +213,7 @@ def test_kuka_specs_can_be_set_as_lists():
 def test_checkpoints_fall_on_every_evaluation_and_stay_frequent():
     """bench_train checkpoints at least as often as the world's --train, and on every
     evaluation step (the evaluation reads that checkpoint)."""
-    from experiments.bench_train_worlds import WORLDS
+    from experiments.bench.train_worlds import WORLDS
 
     for world in WORLDS.values():
         for eval_every in (1, 7, 250, 1000, 12000, 12345):

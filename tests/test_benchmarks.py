@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from experiments import bench_gridworld
+from experiments.bench import gridworld as bench_gridworld
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -59,7 +59,7 @@ def test_env_runner_checksum_is_the_xor_of_every_observation():
 def test_bench_planner_tiny_run(tmp_path):
     """bench_planner end to end on 2 episodes (numbers not checked; the eager reference must
     play the same game: its episodes end)."""
-    from experiments import bench_planner
+    from experiments.bench import planner as bench_planner
 
     out = tmp_path / "planner.json"
     assert bench_planner.main(["--batch-sizes", "2", "--num-steps", "2", "--eager-full", "2",
@@ -79,9 +79,9 @@ def test_eager_variants_run_the_same_moves_and_calls():
     """The op-by-op eager loop (no jax.jit) and the compiled-forward one do the same work:
     one move of 2 episodes, 2 denoising steps each."""
     from diffplan import load_denoiser
-    from experiments import bench_eager
-    from experiments.gridworld_eval import eval_episodes
-    from experiments.gridworld_spec import SPECS
+    from experiments.bench import eager as bench_eager
+    from experiments.gridworld.eval import eval_episodes
+    from experiments.gridworld.spec import SPECS
 
     den = load_denoiser(os.path.join(REPO, "checkpoints", "compile_gridworld"))
     config = SPECS["p_mo2g"].grid_config()
@@ -98,7 +98,7 @@ def test_bench_release_says_how_to_get_torch_when_absent(monkeypatch, capsys):
     line, and exits 2."""
     import sys
 
-    from experiments import bench_release
+    from experiments.bench import release as bench_release
 
     monkeypatch.setitem(sys.modules, "torch", None)
     assert bench_release.main([]) == 2
@@ -107,7 +107,7 @@ def test_bench_release_says_how_to_get_torch_when_absent(monkeypatch, capsys):
 
 
 def test_release_configuration_is_the_published_one():
-    from experiments import bench_release
+    from experiments.bench import release as bench_release
 
     cfg = bench_release.RELEASE_CONFIG
     assert cfg["in_channels"] == 514 and cfg["block_out_channels"] == (256, 512, 1024)

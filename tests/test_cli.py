@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from experiments import cli
+from experiments.harness import cli
 
 
 def _parser():
@@ -73,7 +73,7 @@ def test_harness_intervals_tables_and_keys():
     import jax
     import numpy as np
 
-    from experiments import harness, intervals, tables
+    from experiments.harness import core as harness, intervals, tables
 
     assert intervals.wilson_interval(0, 0) == [0.0, 100.0]
     lo, hi = intervals.wilson_interval(3000, 3000)
@@ -96,7 +96,7 @@ def test_compile_together_gives_the_jitted_programs():
     import jax
     import numpy as np
 
-    from experiments import compiling
+    from experiments.harness import compiling
 
     fn = jax.jit(lambda x, k: x * k + 1)
     small, large = compiling.compile_together(fn, [(np.ones(3, np.float32), 2.0),

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from envs.gridworld import grammar, metrics
-from experiments import gridworld_cli, gridworld_spec, harness
+from experiments.gridworld import cli as gridworld_cli, spec as gridworld_spec
+from experiments.harness import core as harness
 
 EXPECTED_ROW_FIELDS = {"method", "SR", "GD", "path_precision", "path_recall", "path_f1",
                        "denoiser_calls_per_episode", "seconds"}
@@ -129,7 +130,7 @@ def test_baseline_rows_beside_the_planner(tiny_run, tmp_path):
     """--baselines adds BC's and CQL's rows, and the reference agents theirs, measured on the
     planner's episodes: equal to baselines_eval's rows for the same seeds (the table is the
     same measurement)."""
-    from experiments.baselines_eval import baseline_rows, reference_rows
+    from experiments.gridworld.baselines import baseline_rows, reference_rows
 
     out, _ = tiny_run
     result = gridworld_cli.main("1o1g", ["--checkpoint", str(out / "train"), "--episodes", "4",
@@ -269,7 +270,7 @@ def test_same_seed_same_results(tiny_run, tmp_path):
 
 
 def test_ship_checkpoint_writes_a_loadable_export_with_its_note(tiny_run, tmp_path):
-    from experiments import ship_checkpoint
+    from experiments.shipping import denoiser as ship_checkpoint
 
     out, _ = tiny_run
     dest = tmp_path / "shipped"
@@ -285,7 +286,7 @@ def test_ship_checkpoint_writes_a_loadable_export_with_its_note(tiny_run, tmp_pa
 def test_a_follow_results_command_names_its_mark():
     """The NOTE's command of a follow-psi result repeats the mark it ran with, so the command
     reproduces it whatever the default; a search result names neither."""
-    from experiments.ship_checkpoint import _result_command
+    from experiments.shipping.denoiser import _result_command
 
     base = {"experiment": "compile_p_mo2g", "episodes": 10, "seed": 1000}
     assert _result_command({**base, "psi": "follow", "follow_mark": -0.8}).endswith(
@@ -306,7 +307,7 @@ def test_x0_prediction_trains_and_evaluates(tmp_path):
 
 
 def test_ablation_runs_every_row_on_a_tiny_configuration(tiny_run, tmp_path):
-    from experiments import ablation_compile
+    from experiments.gridworld import ablation as ablation_compile
 
     out, _ = tiny_run
     result = ablation_compile.main([

@@ -6,8 +6,9 @@ import os
 import numpy as np
 import pytest
 
-from experiments import gridworld_eval as ge, harness
-from experiments.gridworld_spec import SPECS, TRAINING_NAME
+from experiments.gridworld import eval as ge
+from experiments.harness import core as harness
+from experiments.gridworld.spec import SPECS, TRAINING_NAME
 
 CHECKPOINT = os.path.join(harness.CHECKPOINT_ROOT, TRAINING_NAME)
 

@@ -145,7 +145,7 @@ def test_the_draws_cover_their_ranges(gen_batch):
 def test_evaluation_episodes_are_the_registrys_and_deterministic():
     """Evaluation episode i of seed S is the registry's generate(fold_in(PRNGKey(S), i)) (the
     CLI's, export's and sweep's convention), the same on every call."""
-    from experiments import gridworld_eval as ge
+    from experiments.gridworld import eval as ge
 
     _, generate = envs.make(f"gridworld/{SETTING}")
     first = ge.eval_episodes(make_config(SETTING), 8, 1000)
@@ -193,7 +193,7 @@ FAR_MIXTURE = training.TRAINING_MIXTURE + ((SETTING, 36),)
 def test_training_episodes_are_not_evaluation_episodes():
     """The episodes such a run would draw in 500 steps (18,000) share no world with the 1000
     episodes of the validation and evaluation seeds; they are far episodes (not vacuous)."""
-    from experiments import gridworld_eval as ge
+    from experiments.gridworld import eval as ge
 
     train = training.training_episodes(SETTING, seed=0, steps=500, batch_size=100,
                                        mixture=FAR_MIXTURE, chunk=250)

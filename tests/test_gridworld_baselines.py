@@ -20,7 +20,7 @@ from envs.gridworld import baselines as gb
 from envs.gridworld import bfs, env, grammar
 from envs.gridworld.config import make_config
 from envs.gridworld.task import GridTask
-from experiments.gridworld_eval import eval_episodes, metrics_row
+from experiments.gridworld.eval import eval_episodes, metrics_row
 
 
 # ---------------------------------------------------------------------------- goal vector
@@ -236,7 +236,7 @@ TINY_DD = dd.DDConfig(horizon=8, widths=(8, 16), embed_dim=16, groups=4)
 def tiny_ship(tmp_path_factory):
     """Each baseline trained a few steps with tiny settings, through train_baselines, and
     shipped; returns (run_dir, ship_dir)."""
-    from experiments import train_baselines as tb
+    from experiments.shipping import train_baselines as tb
 
     root = tmp_path_factory.mktemp("baselines")
     run_dir, ship_dir = str(root / "runs"), str(root / "ship")
@@ -252,7 +252,7 @@ def tiny_ship(tmp_path_factory):
 
 
 def test_tiny_baselines_evaluate_through_baseline_rows(tiny_ship):
-    from experiments.baselines_eval import baseline_rows
+    from experiments.gridworld.baselines import baseline_rows
 
     _, ship_dir, _ = tiny_ship
     rows = baseline_rows("p_mo2g", (7, 8), 4, 4, False, checkpoint_root=ship_dir,
@@ -275,8 +275,8 @@ def test_per_setting_models_are_trained_shipped_and_picked_per_setting(tmp_path)
     shipped under bc/<setting>/ (replacing the one model shipped before) and picked by the
     setting's rows; a setting without a model of its own is refused by name."""
     from diffplan.checkpoint import read_metadata
-    from experiments import baselines_eval as be
-    from experiments import train_baselines as tb
+    from experiments.gridworld import baselines as be
+    from experiments.shipping import train_baselines as tb
 
     run_dir, ship_dir = str(tmp_path / "runs"), str(tmp_path / "ship")
     cfg = bc.BCTrainConfig(steps=2, batch_size=4, checkpoint_every=2, log_every=1)
@@ -307,7 +307,7 @@ def test_per_setting_models_are_trained_shipped_and_picked_per_setting(tmp_path)
 
 def test_baseline_rows_with_one_seed_and_the_executed_success(tiny_ship):
     from diffplan.baselines.policies import load_policy
-    from experiments.policy_eval import evaluate_policy
+    from experiments.gridworld.policy_eval import evaluate_policy
 
     _, ship_dir, _ = tiny_ship
     policy = load_policy("bc", os.path.join(ship_dir, "bc"), gb.POLICY_WORLD)
@@ -351,7 +351,7 @@ def test_resume_with_other_settings_is_refused(tiny_ship):
 
 
 def test_train_baselines_cli_refuses_bad_arguments(capsys):
-    from experiments import train_baselines as tb
+    from experiments.shipping import train_baselines as tb
 
     for argv in (["--baselines", "bc,xyz"], ["--bc-steps", "0"], ["--remark", "hi"],
                  ["--ship", "--results", "missing.json"], ["--seed", "-1"],
@@ -368,7 +368,7 @@ def test_train_baselines_cli_refuses_bad_arguments(capsys):
 
 def test_train_baselines_dd_change_weight_defaults_to_the_worlds():
     from envs.kuka.baselines import DD_CHANGE_WEIGHT
-    from experiments import train_baselines as tb
+    from experiments.shipping import train_baselines as tb
 
     def weight(argv):
         return tb.configs(tb.build_parser().parse_args(argv))[2].change_weight

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from experiments import intervals
+from experiments.harness import intervals
 
 
 def _oracle(successes, trials):

@@ -309,7 +309,7 @@ def shipped(tmp_path_factory):
     """A BC, a CQL and a DD-style planner trained 2 steps each (CQL on a 512-transition
     buffer) and shipped the way train_baselines --world kuka --ship ships them."""
     from diffplan.baselines import bc, cql, dd
-    from experiments import baselines_ship
+    from experiments.shipping import baselines as baselines_ship
 
     root = tmp_path_factory.mktemp("kuka_baselines")
     kb.train_bc(str(root / "runs" / "bc"), bc.BCTrainConfig(steps=2, batch_size=8,
@@ -337,7 +337,7 @@ def test_kuka_cli_runs_a_shipped_baseline_in_physics(shipped, tmp_path, monkeypa
     import json
 
     import kuka_fixtures as kf
-    from experiments import kuka_baselines, kuka_cli
+    from experiments.kuka import baselines as kuka_baselines, cli as kuka_cli
 
     note = (shipped / "bc" / "NOTE.md").read_text()
     assert note.startswith("# bc (Kuka)") and "pick cell and the place cell" in note
@@ -372,7 +372,7 @@ def test_kuka_cli_runs_a_shipped_baseline_in_physics(shipped, tmp_path, monkeypa
 
 
 def test_kuka_cli_refuses_a_baseline_that_was_not_shipped(tmp_path, monkeypatch, capsys):
-    from experiments import kuka_baselines, kuka_cli
+    from experiments.kuka import baselines as kuka_baselines, cli as kuka_cli
 
     monkeypatch.setattr(kuka_baselines, "CHECKPOINT_DIR", str(tmp_path))
     for argv in (["--baselines"], ["--policy", "bc"], ["--baselines", "cql"]):
@@ -393,7 +393,7 @@ CQL satisfied none there: it is guarded by test_shipped_kuka_cql_still_chooses_t
 
 
 def _check_note(name):
-    from experiments import kuka_baselines
+    from experiments.kuka import baselines as kuka_baselines
 
     note = open(f"{kuka_baselines.CHECKPOINT_DIR}/{name}/NOTE.md").read()
     for needle in ("python -m experiments.train_baselines --world kuka", "seed",
@@ -409,7 +409,7 @@ def test_shipped_kuka_baseline_loads_and_still_performs(name):
     satisfies at least what it measured there minus one constraint (an untrained network
     satisfies none: see test_kuka_cli_runs_a_shipped_baseline_in_physics's smoke run)."""
     import kuka_fixtures as kf
-    from experiments import kuka_cli
+    from experiments.kuka import cli as kuka_cli
 
     _check_note(name)
     result = kuka_cli.main("stacking", [
@@ -431,7 +431,7 @@ def test_shipped_kuka_cql_still_chooses_the_experts_cells():
     its SR (0 of 32 on the episodes above; 4-7% on the evaluation seeds): its two greedy
     decisions are, against the training expert's cells in the decision process it was trained
     in, to within 5 of what they were when it shipped."""
-    from experiments import kuka_baselines
+    from experiments.kuka import baselines as kuka_baselines
 
     _check_note("cql")
     (policy,) = kuka_baselines.load_baselines(["cql"])

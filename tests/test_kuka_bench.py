@@ -7,7 +7,7 @@ import json
 import pytest
 
 import kuka_fixtures as kf
-from experiments import bench_kuka
+from experiments.bench import kuka as bench_kuka
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 

@@ -11,7 +11,8 @@ import pytest
 
 import kuka_fixtures as kf
 from envs.kuka import grammar, render
-from experiments import intervals, kuka_cli, kuka_spec
+from experiments.harness import intervals
+from experiments.kuka import cli as kuka_cli, spec as kuka_spec
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 
@@ -224,7 +225,7 @@ def test_videos_render_or_say_why(tmp_path, monkeypatch, capsys):
 def test_ship_kuka_checkpoint_with_its_note(train_dir, tmp_path):
     """ship_checkpoint --world kuka exports the (tiny) run with a NOTE.md holding the training
     command, the task specs and the Kuka results table; the export loads as the Kuka denoiser."""
-    from experiments import ship_checkpoint
+    from experiments.shipping import denoiser as ship_checkpoint
 
     out = tmp_path / "res"
     out.mkdir()
@@ -244,7 +245,7 @@ def test_ship_kuka_checkpoint_with_its_note(train_dir, tmp_path):
 def test_note_commands_carry_the_kuka_flags_a_result_departs_in():
     """A NOTE's command reproduces its table: --modes, --carry and --reader when not the
     defaults, nothing added when they are."""
-    from experiments.ship_checkpoint import _result_command
+    from experiments.shipping.denoiser import _result_command
 
     base = {"experiment": "kuka_stacking", "episodes": 70, "seeds": [2001, 2002, 2003],
             "language": "all", "modes": ["on_the_fly", "one_shot"], "carry": "path",

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from envs.kuka import grammar
-from experiments import kuka_role_probe as probe
+from experiments.kuka import role_probe as probe
 
 
 def test_roles_follow_the_slots_of_each_template():

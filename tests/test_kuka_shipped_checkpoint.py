@@ -13,7 +13,7 @@ import kuka_fixtures as kf
 from diffplan.planner import Planner, PlannerConfig
 from envs.kuka.config import COLUMNS
 from envs.kuka.task import KukaTask
-from experiments import kuka_eval as ke, kuka_spec as ks
+from experiments.kuka import eval as ke, spec as ks
 
 pytestmark = pytest.mark.filterwarnings(kf.MJX_CAST_WARNING)
 
@@ -43,7 +43,7 @@ def test_checkpoint_is_the_default_model_of_the_recipe(denoiser):
     from diffplan.checkpoint import read_metadata
     from envs.kuka import grammar
     from envs.kuka.training import Recipe
-    from experiments.harness import vocabulary_mismatch
+    from experiments.harness.core import vocabulary_mismatch
 
     assert denoiser.model_config == ks.model_config("default")
     assert denoiser.prediction == ks.PREDICTION

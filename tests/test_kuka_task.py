@@ -146,7 +146,7 @@ def test_planner_goal_build_orders():
 def test_the_denoiser_mixture_weights_the_eight_specs():
     """The default recipe trains on every spec of the even mixture, in its order, with the
     shares the docstring names; a Kuka batch of 32 holds whole shares."""
-    from experiments import kuka_spec
+    from experiments.kuka import spec as kuka_spec
 
     specs = training.Recipe().specs
     assert specs == training.DENOISER_SPECS

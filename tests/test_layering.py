@@ -4,6 +4,9 @@ code's own imports, module-level and inside functions alike:
 - ``diffplan/`` (the method) imports nothing from ``envs/`` or ``experiments/``;
 - ``envs/`` (the worlds) imports nothing from ``experiments/``;
 - no package has an import circle (a module that, through its imports, imports itself);
+- inside ``experiments/``, a subpackage imports only those on floors below its own: the shared
+  ``harness`` first, then one per world (``gridworld``, ``kuka``), then those over both worlds
+  (``sweeping``, ``bench``, ``shipping``); the entry points at the top may import any;
 - no module under ``experiments/`` is longer than 250 lines.
 """
 from __future__ import annotations
@@ -16,6 +19,9 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGES = ("diffplan", "envs", "experiments")
 MAX_EXPERIMENT_LINES = 250
+EXPERIMENT_FLOORS = {"harness": 0, "gridworld": 1, "kuka": 1, "sweeping": 2, "bench": 2,
+                     "shipping": 2}
+"""The subpackages of experiments/ by floor: each imports only subpackages of lower floors."""
 
 
 def module_name(path: pathlib.Path) -> str:
@@ -117,6 +123,22 @@ def test_lower_layers_never_import_upper_ones(package, forbidden):
     bad = sorted(f"{m} imports {t}" for m, targets in graph.items()
                  if m == package or m.startswith(package + ".")
                  for t in targets if t.split(".")[0] in forbidden)
+    assert not bad, bad
+
+
+def experiment_subpackage(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "experiments" and len(parts) > 2 else None
+
+
+def test_experiment_subpackages_import_only_lower_floors():
+    graph = import_graph()
+    found = {experiment_subpackage(m) for m in graph} - {None}
+    assert found == set(EXPERIMENT_FLOORS), found   # a new subpackage gets its floor here
+    bad = sorted(f"{m} imports {t}" for m, targets in graph.items()
+                 if (own := experiment_subpackage(m)) for t in targets
+                 if t.startswith("experiments.") and (other := experiment_subpackage(t))
+                 and other != own and EXPERIMENT_FLOORS[other] >= EXPERIMENT_FLOORS[own])
     assert not bad, bad
 
 

@@ -120,7 +120,7 @@ def test_per_phrasing_splits_by_template():
     from types import SimpleNamespace
 
     from envs.gridworld import grammar
-    from experiments.tables import format_phrasings
+    from experiments.harness.tables import format_phrasings
 
     positions = np.array([
         [[0, 0], [1, 0], [1, 1], [1, 1]],  # via the reference: ordered success

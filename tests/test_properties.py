@@ -8,7 +8,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from envs.gridworld import grammar
-from experiments import gridworld_flags, gridworld_spec, harness
+from experiments.gridworld import flags as gridworld_flags, spec as gridworld_spec
+from experiments.harness import core as harness
 
 WORDS = [w for w in grammar.VOCAB if w not in grammar.SPECIAL_TOKENS]
 

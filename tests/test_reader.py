@@ -13,8 +13,8 @@ from diffplan import language
 from diffplan.reader import (ReaderConfig, load_reader, role_probabilities, save_reader,
                              train_reader)
 from envs.kuka import grammar, reader
-from experiments import train_reader as train_reader_cli
-from experiments.harness import REPO_ROOT
+from experiments.kuka import reader as train_reader_cli
+from experiments.harness.core import REPO_ROOT
 
 PHRASINGS = ("canonical", "paraphrased", "unseen", language.BROAD)
 

@@ -22,9 +22,9 @@ from envs.gridworld import agents, grammar
 from envs.gridworld.config import SETTINGS, make_config
 from envs.gridworld.episode import EMPTY_CELL, OBSTACLE_CELL, compass_sector
 from envs.gridworld.task import GridTask
-from experiments.baselines_eval import reference_rows
-from experiments.policy_eval import evaluate_policy
-from experiments.gridworld_eval import eval_episodes
+from experiments.gridworld.baselines import reference_rows
+from experiments.gridworld.policy_eval import evaluate_policy
+from experiments.gridworld.eval import eval_episodes
 
 BATCH = 32
 SEEDS = (1000, 1001)

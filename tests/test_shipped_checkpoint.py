@@ -10,8 +10,9 @@ import pytest
 
 from envs.gridworld.config import make_config
 from envs.gridworld.metrics import trajectory_metrics
-from experiments import gridworld_eval as ge, harness
-from experiments.gridworld_spec import SPECS, TRAINING_NAME
+from experiments.gridworld import eval as ge
+from experiments.harness import core as harness
+from experiments.gridworld.spec import SPECS, TRAINING_NAME
 
 CHECKPOINT = os.path.join(harness.CHECKPOINT_ROOT, TRAINING_NAME)
 MIN_SR = 100.0 * 63 / 64

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from envs.gridworld.metrics import trajectory_metrics
-from experiments import gridworld_eval as ge, harness
-from experiments.gridworld_spec import FAR_TRAINING_NAME, SPECS
+from experiments.gridworld import eval as ge
+from experiments.harness import core as harness
+from experiments.gridworld.spec import FAR_TRAINING_NAME, SPECS
 from test_shipped_checkpoint import load_shipped
 
 CHECKPOINT = os.path.join(harness.CHECKPOINT_ROOT, FAR_TRAINING_NAME)

@@ -12,8 +12,8 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import sweep, sweep_config
-from experiments.gridworld_spec import SPECS, train_setting
+from experiments.sweeping import cli as sweep, config as sweep_config
+from experiments.gridworld.spec import SPECS, train_setting
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -236,7 +236,7 @@ def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
     configuration the final states (contract 4) from which its SR recomputes. (One planning
     mode: both worlds' CLIs compile one Kuka rollout per mode, ~2 min each on this CPU.)"""
     import kuka_fixtures as kf
-    from experiments import kuka_cli
+    from experiments.kuka import cli as kuka_cli
 
     common = {"task": "kuka/stacking", "episodes": 4, "seed": 7, "batch_size": kf.BATCH}
     path = tmp_path / "kuka.json"

@@ -90,8 +90,8 @@ def test_1o1g_episodes_seen_in_training_are_counted_and_left_out(tmp_path):
     import json
     import os
 
-    from experiments import gridworld_cli, gridworld_eval as ge
-    from experiments.harness import CHECKPOINT_ROOT
+    from experiments.gridworld import cli as gridworld_cli, eval as ge
+    from experiments.harness.core import CHECKPOINT_ROOT
 
     checkpoint = os.path.join(CHECKPOINT_ROOT, "compile_gridworld")
     episodes = ge.eval_episodes(training.make_config("1o1g"), 300, 2001)
@@ -120,7 +120,7 @@ def test_no_validation_or_evaluation_episode_is_a_training_episode(setting):
     """Over the shipped run's first 1000 steps (the whole run, measured once: none of 288,000
     P-MO2G and 144,000 MO1G training episodes equals one of the 1000 episodes of seeds 1000,
     2001, 2002, 2003)."""
-    from experiments import gridworld_eval as ge
+    from experiments.gridworld import eval as ge
 
     seen = set(fingerprints(training.training_episodes(setting, seed=0, steps=1000,
                                                        batch_size=64)))
