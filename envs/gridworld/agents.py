@@ -135,5 +135,5 @@ REFERENCE_POLICIES = {
     "oracle": LoadedPolicy("oracle", oracle_act, None, observe=privileged),
     "searcher": LoadedPolicy("searcher", searcher_act, None),
 }
-"""The reference agents as policies for policy_rollout (experiments.baselines_eval's
+"""The reference agents as policies for policy_rollout (experiments.gridworld.baselines'
 ``reference_rows``), in the order of REFERENCE_AGENTS."""

@@ -149,7 +149,7 @@ def step(state: State, action) -> State:
 
 SETTLE_SECONDS = 1.0
 """Simulated seconds the blocks settle, the arm held in its retreat pose and nothing held,
-before success is read (experiments.kuka_eval)."""
+before success is read (experiments.kuka.eval)."""
 
 
 def settle(state: State, seconds: float = SETTLE_SECONDS) -> State:
