@@ -91,15 +91,15 @@ def target_cells(grid, target_type, target_color):
 def reset(episode: Episode) -> State:
     """The state at t = 0: minigrid's layout, nothing carried, the first observation taken;
     the agent's own cell is known to be empty (minigrid places the agent on an empty cell)."""
-    grid = episode.grid.astype(jnp.uint8)
+    grid = jnp.asarray(episode.grid, jnp.uint8)
     h, w = grid.shape[:2]
-    pos = episode.agent.astype(jnp.int32)
+    pos = jnp.asarray(episode.agent, jnp.int32)
     known = jnp.zeros((h, w, 3), jnp.uint8).at[pos[0], pos[1]].set(
         jnp.asarray(O.EMPTY_CELL, jnp.uint8))
     target = target_cells(grid, episode.target_type, episode.target_color)
-    state = State(grid=grid, pos=pos, direction=episode.agent_dir.astype(jnp.int32),
+    state = State(grid=grid, pos=pos, direction=jnp.asarray(episode.agent_dir, jnp.int32),
                   carrying=jnp.asarray(O.EMPTY_CELL, jnp.uint8), step_count=jnp.int32(0),
-                  max_steps=episode.max_steps.astype(jnp.int32), target=target,
+                  max_steps=jnp.asarray(episode.max_steps, jnp.int32), target=target,
                   tracked=target, carrying_tracked=jnp.array(False),
                   reward=jnp.float32(0), terminated=jnp.array(False),
                   truncated=jnp.array(False), known=known,

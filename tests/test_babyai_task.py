@@ -1,0 +1,169 @@
+"""BabyAITask: the condition channels (the agent's map from its own observations, padded to the
+UNet's multiple), psi on an oracle plan succeeding in minigrid itself (every action replayed
+there), the re-planning predicates on hand-made plans, and bad input refused in one line."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from envs.babyai import episode as E
+from envs.babyai import grammar, seeds
+from envs.babyai import objects as O
+from envs.babyai.config import make_config
+from envs.babyai.task import (AGENT_CHANNEL, BLOCKED_CHANNEL, BabyAITask, GOAL, ID_CHANNEL,
+                              NUM_KINDS, SEEN_CHANNEL, cell_kinds)
+
+TASK_SEED = 11
+"""Layouts: evaluation_seed(TASK_SEED, i), no seed any result is reported on."""
+
+
+@pytest.fixture(scope="module")
+def layouts():
+    return {level: E.layouts(make_config(level),
+                             [seeds.evaluation_seed(TASK_SEED, i) for i in range(n)])
+            for level, n in (("goto_local", 16), ("goto", 8))}
+
+
+def test_geometry_matches_minigrid(layouts):
+    for level, (h, w, steps, hp) in {"goto_local": (8, 8, 64, 8), "goto_obj_maze": (22, 22, 576, 24),
+                                     "goto": (22, 22, 576, 24)}.items():
+        config = make_config(level)
+        env = E.make_env(config)
+        E.reset_quietly(env, 0)
+        assert (env.height, env.width, env.max_steps) == (h, w, steps) == (
+            config.height, config.width, config.max_steps)
+        task = BabyAITask(config)
+        assert task.height == task.width == hp and task.max_steps == steps
+
+
+def test_cell_kinds_are_distinct_and_within_the_vocabulary():
+    cells = [(O.UNSEEN, 0, 0), O.EMPTY_CELL, O.WALL_CELL]
+    cells += [(O.DOOR, c, s) for c in range(6) for s in range(3)]
+    cells += [(t, c, 0) for t in (O.KEY, O.BALL, O.BOX) for c in range(6)]
+    kinds = np.asarray(cell_kinds(jnp.asarray(cells, jnp.uint8)))
+    assert sorted(kinds) == list(range(NUM_KINDS))
+    task = BabyAITask(make_config("goto_local"))
+    assert task.vocab_size == grammar.VOCAB_SIZE + NUM_KINDS <= 64
+
+
+def test_condition_is_the_agents_map_padded_with_walls(layouts):
+    task = BabyAITask(make_config("goto"))
+    eps = layouts["goto"]
+    states = jax.vmap(task.reset)(eps)
+    cond = jax.device_get(jax.vmap(task.condition)(states))
+    states = jax.device_get(states)
+    assert cond.shape == (8, 24, 24, 8) and cond.dtype == np.float32
+    seen = states.known[..., 0] != O.UNSEEN
+    np.testing.assert_array_equal(cond[:, :22, :22, SEEN_CHANNEL], seen)
+    assert 0 < seen.sum(axis=(1, 2)).max() <= 49
+    # unseen cells carry the unseen id whatever the true grid holds
+    assert (cond[:, :22, :22, ID_CHANNEL][~seen] == task.cell_id_base).all()
+    # the padding reads as known walls
+    assert (cond[:, 22:, :, ID_CHANNEL] == task.cell_id_base + 2).all()
+    assert (cond[:, :, 22:, BLOCKED_CHANNEL] == 1).all()
+    for b in range(8):
+        agent = np.argwhere(cond[b, ..., AGENT_CHANNEL] == 1)
+        np.testing.assert_array_equal(agent, [states.pos[b]])
+
+
+def _oracle_plan(task, state):
+    """The plan an oracle denoiser would draw: the goal channel +1 on the instructed objects."""
+    h, w = state.target.shape
+    goal = jnp.pad(jnp.where(state.target, 1.0, -1.0),
+                   ((0, task.height - h), (0, task.width - w)), constant_values=-1.0)
+    return jnp.full((task.height, task.width, 3), -1.0).at[..., GOAL].set(goal)
+
+
+@pytest.mark.parametrize("level", ["goto_local", "goto"])
+def test_psi_on_an_oracle_plan_succeeds_in_minigrid(layouts, level):
+    """psi's actions in the port, replayed in minigrid: every episode ends with minigrid's own
+    reward > 0, at the step the port says."""
+    task = BabyAITask(make_config(level))
+    eps = layouts[level]
+
+    def run(episode):
+        def body(s, _):
+            a = task.psi(s, _oracle_plan(task, s))
+            return task.step(s, a), jnp.where(s.done, -1, a)
+
+        s, actions = jax.lax.scan(body, task.reset(episode), None, length=task.max_steps)
+        return s.terminated, s.step_count, actions
+
+    done, steps, actions = jax.device_get(jax.jit(jax.vmap(run))(eps))
+    assert done.all()
+    env = E.make_env(make_config(level))
+    for i in range(len(steps)):
+        E.reset_quietly(env, seeds.evaluation_seed(TASK_SEED, i))
+        for t in range(steps[i]):
+            _, reward, terminated, _, _ = env.step(int(actions[i, t]))
+            assert terminated == (t == steps[i] - 1)
+        assert reward > 0
+    if level == "goto":
+        assert (actions == O.TOGGLE).any()      # doors were opened on the way
+
+
+def test_refuted_and_at_goal_estimate_on_hand_made_plans(layouts):
+    task = BabyAITask(make_config("goto_local"))
+    episode = jax.tree.map(lambda x: x[0], layouts["goto_local"])
+    state = task.reset(episode)
+    known = np.asarray(state.known)
+    pos = np.asarray(state.pos)
+
+    def plan_on(cell):
+        plan = -np.ones((8, 8, 3), np.float32)
+        plan[cell[0], cell[1], GOAL] = 1.0
+        return jnp.asarray(plan)
+
+    empty = next(tuple(c) for c in np.argwhere(known[..., 0] == O.EMPTY) if tuple(c) != tuple(pos))
+    unseen = tuple(np.argwhere(known[..., 0] == O.UNSEEN)[0])
+    assert bool(task.plan_refuted(state, plan_on(empty)))         # a seen empty cell
+    assert not bool(task.plan_refuted(state, plan_on(unseen)))    # may hold the object
+    assert float(task.plan_cost(state, plan_on(empty))) >= 1e4
+    assert float(task.plan_cost(state, plan_on(unseen))) < 1e4
+    beside = tuple(pos + np.array([0, 1])) if pos[1] < 6 else tuple(pos - np.array([0, 1]))
+    assert bool(task.at_goal_estimate(state, plan_on(beside))) == (
+        known[beside][0] in (O.UNSEEN, O.KEY, O.BALL, O.BOX))
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda: envs.make("babyai/nowhere"), "unknown world 'babyai/nowhere'"),
+    (lambda: make_config("nowhere"), "unknown BabyAI level 'nowhere'"),
+    (lambda: make_config("PutNext"), "not one the Task can plan"),
+    (lambda: make_config("BabyAI-PutNextLocal-v0"), "not one the Task can plan"),
+    (lambda: envs.make("babyai/goto", path_wieght=1.0), "path_wieght"),
+    (lambda: grammar.parse("put the red ball next to the blue box"), "outside the GoTo grammar"),
+    (lambda: grammar.parse("go to the red ball on your left"), "outside the GoTo grammar"),
+    (lambda: make_config("goto").tokenize("go to the pink ball"), "outside the GoTo grammar"),
+    (lambda: BabyAITask(make_config("goto"), num_gen_channels=2), "3 generated channels"),
+])
+def test_bad_input_is_refused_in_one_line(call, needle):
+    with pytest.raises(ValueError, match=needle) as info:
+        call()
+    assert "\n" not in str(info.value)
+
+
+def test_a_level_of_another_mission_is_refused_in_one_line():
+    """A minigrid level whose mission is not GoTo, handed to the episode converter."""
+    import gymnasium
+
+    env = gymnasium.make("BabyAI-PutNextLocal-v0").unwrapped
+    E.reset_quietly(env, 0)
+    with pytest.raises(ValueError, match="not a GoTo mission") as info:
+        E.from_env(env, make_config("goto_local"))
+    assert "\n" not in str(info.value)
+
+
+def test_a_pluggable_tokenizer_fills_the_episode_tokens():
+    def ids(mission):
+        out = np.zeros(10, np.int32)
+        out[:len(mission.split())] = [101 + len(w) for w in mission.split()]
+        return out
+
+    task, generate = envs.make("babyai/goto_local", tokenizer=ids, max_tokens=10)
+    episode = jax.jit(generate)(jax.random.PRNGKey(0))
+    assert episode.tokens.shape == (10,) and int(episode.tokens[0]) == 103   # "go"
+    with pytest.raises(ValueError, match="must return 8 integer ids"):
+        make_config("goto_local", tokenizer=ids).tokenize("go to the red ball")
