@@ -31,6 +31,7 @@ from envs.babyai import objects as O
 from envs.babyai import seeds
 from envs.babyai.config import make_config
 from envs.babyai.task import BabyAITask, NUM_COND_CHANNELS, SEEN_CHANNEL
+from test_privileged_fields import DecoyTask as GridDecoyTask
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 BATCH = 6
@@ -57,38 +58,21 @@ def decoy_state(state):
 
 
 @dataclasses.dataclass(frozen=True)
-class DecoyTask:
-    """(state, decoy) pairs: the world's methods see the true state; the agent's side sees
-    :func:`decoy_state` of it where decoy (bool ()) is set."""
-
-    task: object
+class DecoyTask(GridDecoyTask):
+    """(state, decoy) pairs (the grid world's DecoyTask: reset, tokens, step, done and position
+    are the world's, on the true state); the agent's side sees :func:`decoy_state` of it where
+    decoy (bool ()) is set."""
 
     def __getattr__(self, name):
         attr = getattr(self.task, name)
-        if name in AGENT_SIDE:
-            def agent_side(pair, *rest):
-                state, decoy = pair
-                seen_as = jax.tree.map(lambda d, s: jnp.where(decoy, d, s),
-                                       decoy_state(state), state)
-                return attr(seen_as, *rest)
-            return agent_side
-        return attr
+        if name not in AGENT_SIDE:
+            return attr
 
-    def reset(self, pair):
-        episode, decoy = pair
-        return self.task.reset(episode), decoy
-
-    def tokens(self, pair):
-        return self.task.tokens(pair[0])
-
-    def step(self, pair, action):
-        return self.task.step(pair[0], action), pair[1]
-
-    def done(self, pair):
-        return self.task.done(pair[0])
-
-    def position(self, pair):
-        return self.task.position(pair[0])
+        def agent_side(pair, *rest):
+            state, decoy = pair
+            return attr(jax.tree.map(lambda d, s: jnp.where(decoy, d, s), decoy_state(state),
+                                     state), *rest)
+        return agent_side
 
 
 @dataclasses.dataclass(frozen=True)
