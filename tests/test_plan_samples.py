@@ -128,18 +128,18 @@ def test_a_task_without_plan_cost_refuses_several_draws(p_mo2g_episodes):
 
 def test_grid_plan_cost_is_the_walk_to_the_heading_cell():
     """Moves around known obstacles (unseen cells count as free) to the sub-goal's cell; a plan
-    whose guessed cell was seen to hold something else costs REFUTED_PLAN_COST more."""
+    whose guessed cell was seen to hold no object costs REFUTED_PLAN_COST more."""
     state = _state((5, 5), target=(9, 9), reference=(0, 1), reached=True)
     plan = _point_plan(goal=(9, 9), subgoal=(9, 9))
-    assert float(plan_cost(state, plan, has_reference=True)) == 8.0
+    assert float(plan_cost(state, plan)) == 8.0
     wall = state.grid.at[6, 3:8].set(OBSTACLE_CELL).at[4:7, 7].set(OBSTACLE_CELL)
-    walled = state.replace(grid=wall, target=jnp.array([9, 5], jnp.int32))
+    walled = state.replace(grid=wall.at[9, 5].set(3))
     south = _point_plan(goal=(9, 5), subgoal=(9, 5))
-    assert float(plan_cost(walled, south, True)) == 4 + 2 * 3  # around the wall's west end
+    assert float(plan_cost(walled, south)) == 4 + 2 * 3  # around the wall's west end
     unseen = walled.replace(seen=walled.seen.at[6, 3:8].set(False))
-    assert float(plan_cost(unseen, south, True)) == 4.0  # not known to be a wall
+    assert float(plan_cost(unseen, south)) == 4.0  # not known to be a wall
     wrong = _point_plan(goal=(9, 8), subgoal=(9, 8))
-    assert float(plan_cost(state, wrong, True)) == 7.0 + REFUTED_PLAN_COST
+    assert float(plan_cost(state, wrong)) == 7.0 + REFUTED_PLAN_COST
     assert float(GridTask(make_config("p_mo2g")).plan_cost(state, wrong)) == \
         7.0 + REFUTED_PLAN_COST
 

@@ -106,6 +106,24 @@ def path_end_cell(plan, agent, excluded=None):
     return jnp.where(score[flat] >= 0, cell, agent.astype(jnp.int32))
 
 
+UNSEEN_CELL = -2
+"""What :func:`known_grid` holds where the agent has not seen (episode cells are 0 empty,
+-1 obstacle, k >= 1 an object)."""
+
+
+def known_grid(state: env.State):
+    """int8 (H, W): the world as the agent knows it, the grid where it has seen a cell and
+    :data:`UNSEEN_CELL` elsewhere. The only way the agent's side of the task (psi, the re-plan
+    triggers, the ranking of plans) reads the grid, so that nothing it does depends on a cell
+    it has not seen (docs/DESIGN.md, "What the agent acts on")."""
+    return jnp.where(state.seen, state.grid, jnp.int8(UNSEEN_CELL)).astype(jnp.int8)
+
+
+def known_obstacles(state: env.State):
+    """bool (H, W): the cells the agent has seen to be obstacles."""
+    return known_grid(state) == OBSTACLE_CELL
+
+
 def goal_estimate(state: env.State, plan, use_goal_channel: bool = True):
     """int32 (2,): the cell psi heads for (plan float32 (H, W, G)).
 
@@ -114,7 +132,7 @@ def goal_estimate(state: env.State, plan, use_goal_channel: bool = True):
     while the episode runs). G = 2: the goal channel's argmax off known obstacles.
     use_goal_channel=False (models trained without goal channels): the end of the unvisited
     path connected to the agent."""
-    known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+    known_obstacle = known_obstacles(state)
     if not use_goal_channel:
         return path_end_cell(plan, state.agent, known_obstacle | state.visited)
     if plan.shape[-1] >= 3:
@@ -122,25 +140,28 @@ def goal_estimate(state: env.State, plan, use_goal_channel: bool = True):
     return goal_cell(plan, known_obstacle)
 
 
-def sought_cell(state: env.State, has_reference: bool):
-    """int32 (2,): the cell of the object the instruction asks for next: the reference while a
-    setting with one (has_reference) has not had the agent stand on it, else the target."""
-    if not has_reference:
-        return state.target
-    return jnp.where(state.reached_reference, state.target, state.reference).astype(jnp.int32)
-
-
-def plan_refuted(state: env.State, plan, has_reference: bool, use_goal_channel: bool = True):
-    """bool (): what the agent now knows contradicts the plan (plan float32 (H, W, G)): the
-    cell it heads for (:func:`goal_estimate`) has been seen and is not the object the
-    instruction asks for next, or that object has been seen and the plan heads elsewhere, or
-    the plan marks no cell it may still head for (its sub-goal cell became a known obstacle or
-    was visited). Only seen cells are read: a cell the agent has seen shows which object it
-    holds."""
+def plan_refuted(state: env.State, plan, use_goal_channel: bool = True):
+    """bool (): what the agent has seen contradicts the plan (plan float32 (H, W, G)). Read
+    from the seen cells and the plan alone, never from which object the instruction names
+    (the agent does not know it: only the denoiser reads the instruction):
+    - the cell the plan heads for (:func:`goal_estimate`) has been seen and holds no object
+      (an instruction only ever sends the agent to an object), or
+    - with a goal channel, the cell of the plan's goal estimate (its argmax off known
+      obstacles) has been seen and holds no object: the guess of the goal is disproved, or
+    - a cell the plan marks as path (value > 0) has been seen to be an obstacle: the route
+      was drawn through what is now known to be blocked, or
+    - the plan marks no cell it may still head for (its sub-goal cell became a known obstacle
+      or was visited).
+    Reaching the cell the plan heads for without the episode ending asks for a new plan too
+    (``task.at_goal_estimate``, which every trigger adds)."""
+    known = known_grid(state)
+    seen_no_object = state.seen & (known <= 0)
     heading = goal_estimate(state, plan, use_goal_channel)
-    sought = sought_cell(state, has_reference)
-    wrong = jnp.any(heading != sought) & (state.seen[heading[0], heading[1]]
-                                         | state.seen[sought[0], sought[1]])
+    wrong = seen_no_object[heading[0], heading[1]]
+    if use_goal_channel:
+        goal = goal_cell(plan, known == OBSTACLE_CELL)
+        wrong = wrong | seen_no_object[goal[0], goal[1]]
+    wrong = wrong | jnp.any((plan[..., 0] > 0) & (known == OBSTACLE_CELL))
     if use_goal_channel and plan.shape[-1] >= 3:
         wrong = wrong | (plan[heading[0], heading[1], 2] <= 0)
     return wrong
@@ -150,16 +171,16 @@ REFUTED_PLAN_COST = 1e4
 """:func:`plan_cost` of a plan already refuted (more than any path on a 16 x 16 grid)."""
 
 
-def plan_cost(state: env.State, plan, has_reference: bool, use_goal_channel: bool = True):
+def plan_cost(state: env.State, plan, use_goal_channel: bool = True):
     """float32 (): moves from the agent to the cell the plan heads for (:func:`goal_estimate`)
     over cells not known to be obstacles (unseen cells count as free), plus REFUTED_PLAN_COST
     if what has been seen already refutes the plan (:func:`plan_refuted`). Ranks several drawn
-    plans (``PlannerConfig.samples``): of several guesses of a hidden target, the nearest that
-    is still possible."""
-    passable = ~(state.seen & (state.grid == OBSTACLE_CELL))
+    plans (``PlannerConfig.samples``): of several guesses, the nearest that what the agent has
+    seen still allows."""
+    passable = ~known_obstacles(state)
     heading = goal_estimate(state, plan, use_goal_channel)
     moves = bfs.cost_to_go(passable, heading)[state.agent[0], state.agent[1]]
-    refuted = plan_refuted(state, plan, has_reference, use_goal_channel)
+    refuted = plan_refuted(state, plan, use_goal_channel)
     return moves.astype(jnp.float32) + REFUTED_PLAN_COST * refuted
 
 
@@ -176,7 +197,7 @@ def _follow_targets(state: env.State, plan, use_goal_channel: bool = True):
     heading = goal_estimate(state, plan, use_goal_channel)
     if not (use_goal_channel and plan.shape[-1] >= 3):
         return heading, None
-    goal = goal_cell(plan, state.seen & (state.grid == OBSTACLE_CELL))
+    goal = goal_cell(plan, known_obstacles(state))
     return heading, jnp.where(jnp.any(goal != heading), goal, -1).astype(jnp.int32)
 
 
@@ -189,11 +210,11 @@ def _follow_candidates(state: env.State, plan, use_goal_channel: bool = True, ta
     heading int32 (2,) the cell the plan heads for, ahead bool () some unvisited neighbour is
     marked). targets: :func:`_follow_targets` if already known. mark: a cell whose path value
     is above it is marked (:data:`FOLLOW_MARK`)."""
-    h, w = state.grid.shape
+    h, w = state.seen.shape
     cells, inside = bfs.neighbours(state.agent, (h, w))
     r = jnp.clip(cells[:, 0], 0, h - 1)
     c = jnp.clip(cells[:, 1], 0, w - 1)
-    known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+    known_obstacle = known_obstacles(state)
     legal = inside & ~known_obstacle[r, c]
     heading, avoid_cell = _follow_targets(state, plan, use_goal_channel) if targets is None \
         else targets
@@ -219,7 +240,7 @@ def _replay_moves(state: env.State, plan, use_goal_channel, targets, mark=FOLLOW
     neighbour the plan marks most strongly (:func:`_follow_candidates`); -1 if that does not
     arrive within 2 (H + W) moves."""
     heading = targets[0]
-    h, w = state.grid.shape
+    h, w = state.seen.shape
     limit = 2 * (h + w)
 
     def walking(carry):
@@ -247,8 +268,8 @@ def _branch_moves(state: env.State, plan, use_goal_channel, targets, mark=FOLLOW
     the plan's marks; -1 for a branch that does not arrive and for the other neighbours."""
     cells, legal, score, heading, _ = _follow_candidates(state, plan, use_goal_channel, targets,
                                                          mark)
-    w = state.grid.shape[1]
-    inside = jnp.clip(cells, 0, jnp.array(state.grid.shape) - 1).astype(jnp.int32)
+    w = state.seen.shape[1]
+    inside = jnp.clip(cells, 0, jnp.array(state.seen.shape) - 1).astype(jnp.int32)
 
     def from_cell(cell):
         s = state.replace(agent=cell, visited=state.visited | env._cell_mask(cell, w))
@@ -307,7 +328,7 @@ def psi(state: env.State, plan, path_weight: float = 2.0, use_goal_channel: bool
     use_goal_channel=False heads for the far end of the plan's path instead (for models
     trained without goal channels).
     """
-    known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+    known_obstacle = known_obstacles(state)
     passable = ~known_obstacle
     path01 = (jnp.clip(plan[..., 0], -1.0, 1.0) + 1.0) / 2.0
     enter_cost = 1.0 + path_weight * (1.0 - path01)
@@ -410,7 +431,7 @@ class GridTask:
         replaying the plan's marks, would not arrive where the plan heads
         (:func:`follow_moves` -1: a kept plan would walk the agent back and forth over its own
         track, or off along the path's other leg)."""
-        refuted = plan_refuted(state, plan, self.config.has_reference, self.use_goal_channel)
+        refuted = plan_refuted(state, plan, self.use_goal_channel)
         if self.follows_plan:
             refuted = refuted | (follow_moves(state, plan, self.use_goal_channel,
                                               self.follow_mark) < 0)
@@ -422,7 +443,7 @@ class GridTask:
         "follow" a plan along whose marks psi_follow would not arrive where it heads
         (:func:`follow_moves` -1: a path broken, or one whose later leg draws the agent away
         from its sub-goal) also costs REFUTED_PLAN_COST more."""
-        cost = plan_cost(state, plan, self.config.has_reference, self.use_goal_channel)
+        cost = plan_cost(state, plan, self.use_goal_channel)
         if self.follows_plan:
             moves = follow_moves(state, plan, self.use_goal_channel, self.follow_mark)
             cost = cost + REFUTED_PLAN_COST * (moves < 0)
@@ -432,6 +453,6 @@ class GridTask:
         """bool (): the agent stands on the cell the plan heads for (with a sub-goal channel:
         its argmax off known obstacles, visited or not, so that arriving there counts)."""
         if self.use_goal_channel and plan.shape[-1] >= 3:
-            known_obstacle = state.seen & (state.grid == OBSTACLE_CELL)
+            known_obstacle = known_obstacles(state)
             return jnp.all(state.agent == _argmax_cell(plan[..., 2], known_obstacle))
         return jnp.all(state.agent == goal_estimate(state, plan, self.use_goal_channel))
