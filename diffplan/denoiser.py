@@ -389,6 +389,7 @@ def load_denoiser(directory: str, step: int | None = None) -> LoadedDenoiser:
     network that is not a registered diffplan Denoiser)."""
     from diffplan.checkpoint import latest_step, load_params_for_eval
     from diffplan.schedule import cosine_schedule
+    import diffplan.baselines.goal  # noqa: F401  registers GoalClassifier, a Denoiser
 
     if latest_step(directory) is None:
         raise FileNotFoundError(f"no checkpoint in {directory!r}")

@@ -167,6 +167,35 @@ def token_loss(params, logits_fn: Callable, batch: Batch):
 
 # ------------------------------------------------------------------------------- the step
 
+def goal_loss(params, logits_fn: Callable, batch: Batch):
+    """The learned-goal baseline's loss (``TrainConfig.objective = "goal"``): for each
+    generated channel after the path (g >= 1), the cross-entropy of the network's logits over
+    the H x W cells against the cell where the clean plan holds its maximum (the goal, the
+    sub-goal), over the examples whose loss mask weighs that channel anywhere.
+
+    logits_fn: ``logits_fn({"params": params}, x0, t, tokens) -> (B, H, W, G)`` (the model
+    reads the conditions alone, e.g. ``GoalClassifier.logits``). Returns (mean cross-entropy
+    over channels and examples, accuracy: the share of those argmax cells it ranks first)."""
+    x0, tokens, loss_mask = batch[:3]
+    x0 = x0.astype(jnp.float32)
+    g_all = loss_mask.shape[-1]
+    c = x0.shape[-1] - g_all
+    logits = logits_fn({"params": params}, x0, jnp.zeros(x0.shape[:1], jnp.int32),
+                       tokens.astype(jnp.int32)).astype(jnp.float32)
+    b = x0.shape[0]
+    total, hits, count = 0.0, 0.0, 0.0
+    for g in range(1, g_all):
+        flat = logits[..., g].reshape(b, -1)
+        target = jnp.argmax(x0[..., c + g].reshape(b, -1), axis=-1)
+        weight = (loss_mask[..., g].reshape(b, -1).max(-1) > 0).astype(jnp.float32)
+        ce = -jnp.take_along_axis(jax.nn.log_softmax(flat, -1), target[:, None], -1)[:, 0]
+        total = total + jnp.sum(weight * ce)
+        hits = hits + jnp.sum(weight * (jnp.argmax(flat, -1) == target))
+        count = count + jnp.sum(weight)
+    count = jnp.maximum(count, 1.0)
+    return total / count, hits / count
+
+
 def _alphas_cumprod(config: TrainConfig) -> jax.Array:
     return cosine_schedule(config.num_train_timesteps).alphas_cumprod
 
@@ -188,6 +217,10 @@ def _make_core_step(model, config: TrainConfig, alphas_cumprod):
 
     def core(state: TrainState, batch: Batch, key: jax.Array):
         def loss_fn(p):
+            if config.objective == "goal":
+                loss, accuracy = goal_loss(p, functools.partial(model.apply, method="logits"),
+                                           batch)
+                return loss, {"accuracy": accuracy}
             loss, _ = diffusion_loss(p, model.apply, batch, key, ab, G, config.prediction,
                                      config.timestep_power)
             if batch.token_labels is None:

@@ -49,6 +49,7 @@ BUILTIN = types.MappingProxyType({
     "diffplan.baselines.nets:GoalConvNet": "diffplan.baselines.nets",
     "diffplan.baselines.dd:DDModel": "diffplan.baselines.dd",
     "diffplan.baselines.dd:InverseDynamics": "diffplan.baselines.dd",
+    "diffplan.baselines.goal:GoalClassifier": "diffplan.baselines.goal",
 })
 """diffplan's own networks -> the module whose import registers them (for error messages)."""
 

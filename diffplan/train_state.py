@@ -32,6 +32,11 @@ the clean plan x0 (whose loss weighs every noise level alike, so the model must 
 goal from the conditions even when the noisy channels carry no information)."""
 
 
+OBJECTIVES = ("diffusion", "goal")
+"""What ``TrainConfig.objective`` may name: the denoiser's loss, or the learned-goal
+baseline's."""
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Training hyper-parameters (defaults follow the paper's appendix where it says).
@@ -58,6 +63,10 @@ class TrainConfig:
       val_every: evaluate the EMA params' loss on fixed validation batches every this many
         steps (0: never).
       val_batches: number of validation batches.
+      objective: "diffusion" (the denoising loss, ``diffplan.losses.diffusion_loss``) or
+        "goal" (the learned-goal baseline: cross-entropy over cells of the generated channels'
+        +1 cells, ``diffplan.losses.goal_loss``, for a model with a ``logits`` method such as
+        ``diffplan.baselines.goal.GoalClassifier``).
     """
 
     seed: int = 0
@@ -76,14 +85,18 @@ class TrainConfig:
     log_every: int = 50
     val_every: int = 0
     val_batches: int = 4
+    objective: str = "diffusion"
 
     def __post_init__(self):
         ints = {f.name for f in dataclasses.fields(self) if f.type in ("int", int)}
         if self.prediction not in PREDICTIONS:
             raise ValueError(f"TrainConfig.prediction must be one of {PREDICTIONS}, "
                              f"got {self.prediction!r}")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"TrainConfig.objective must be one of {OBJECTIVES}, "
+                             f"got {self.objective!r}")
         for f in dataclasses.fields(self):
-            if f.name == "prediction":
+            if f.name in ("prediction", "objective"):
                 continue
             v = getattr(self, f.name)
             if f.name in ints:
@@ -118,6 +131,8 @@ class TrainConfig:
         d = dataclasses.asdict(self)
         if d["timestep_power"] == 1.0:  # absent at 1, as in checkpoints from before it
             del d["timestep_power"]
+        if d["objective"] == "diffusion":  # likewise absent at its default
+            del d["objective"]
         return d
 
     @classmethod

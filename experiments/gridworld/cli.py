@@ -34,7 +34,8 @@ def _denoiser(spec, args, modes, parser, progress):
         _, _, seconds = train_setting(spec, checkpoint, seed=args.train_seed,
                                       steps=args.train_steps, progress=progress,
                                       model_size=args.model_size,
-                                      checkpoint_every=args.checkpoint_every)
+                                      checkpoint_every=args.checkpoint_every,
+                                      objective=args.objective)
     except ConfigMismatchError as e:
         harness.fail(str(e))
     return checkpoint, seconds, load_checked(checkpoint, spec, modes, parser)

@@ -32,6 +32,12 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--prediction", choices=("eps", "x0"), default=None,
                    help="network target of --train: the noise (the paper) or the clean plan "
                         f"(default {spec.prediction}; evaluation follows the checkpoint)")
+    p.add_argument("--objective", choices=("diffusion", "goal"), default=None,
+                   help="what --train learns: the diffusion planner (default) or the "
+                        "learned-goal baseline, the same network trained on the same batches "
+                        "to predict the goal and sub-goal cells directly (a classification "
+                        "over cells; diffplan.baselines.goal), evaluated through the same "
+                        "planner and psi with --num-steps 1")
     p.add_argument("--modes", default=",".join(spec.modes),
                    help=f"comma-separated planning modes to evaluate (default "
                         f"{','.join(spec.modes)})")
@@ -124,7 +130,8 @@ def add_reference_agents_flag(parser) -> None:
 
 TRAIN_FLAGS = {"train_dir": "--train-dir", "train_steps": "--train-steps",
                "train_seed": "--train-seed", "checkpoint_every": "--checkpoint-every",
-               "prediction": "--prediction", "model_size": "--model-size"}
+               "prediction": "--prediction", "model_size": "--model-size",
+               "objective": "--objective"}
 
 
 def check_args(parser, args, spec):
@@ -145,6 +152,7 @@ def check_args(parser, args, spec):
     args.checkpoint_every = 500 if args.checkpoint_every is None else args.checkpoint_every
     args.prediction = spec.prediction if args.prediction is None else args.prediction
     args.model_size = "default" if args.model_size is None else args.model_size
+    args.objective = "diffusion" if args.objective is None else args.objective
     args.num_figures = 4 if args.num_figures is None else args.num_figures
     if args.seed < 0:
         parser.error(f"--seed must be >= 0, got {args.seed}")

@@ -133,14 +133,14 @@ class ExperimentSpec:
                       **mixture)
 
     def train_config(self, seed: int = 0, steps: int | None = None,
-                     checkpoint_every: int = CHECKPOINT_EVERY):
+                     checkpoint_every: int = CHECKPOINT_EVERY, objective: str = "diffusion"):
         from envs.gridworld.task import NUM_GEN_CHANNELS
         return recipes.train_config(
             seed=seed, steps=self.train_steps if steps is None else steps,
             batch_size=self.batch_size, lr=self.lr, warmup_steps=self.warmup_steps,
             num_gen_channels=NUM_GEN_CHANNELS, prediction=self.prediction,
             checkpoint_every=checkpoint_every, max_log_every=100,
-            num_train_timesteps=self.num_train_timesteps)
+            num_train_timesteps=self.num_train_timesteps, objective=objective)
 
     def replan_of(self, mode: str) -> str:
         """The re-planning trigger of a mode's row: self.replan if set, else the mode's own
@@ -199,13 +199,16 @@ SPECS = {
 
 def train_setting(spec: ExperimentSpec, out_dir: str, *, seed: int = 0, steps: int | None = None,
                   progress: bool = True, model_size: str = "default",
-                  checkpoint_every: int = CHECKPOINT_EVERY, callback=None):
+                  checkpoint_every: int = CHECKPOINT_EVERY, callback=None,
+                  objective: str = "diffusion"):
     """Trains the setting's denoiser into out_dir with the grid world's training recipe
-    (envs.gridworld.training.Recipe), resuming if out_dir holds a checkpoint.
+    (envs.gridworld.training.Recipe), resuming if out_dir holds a checkpoint; objective "goal"
+    trains the learned-goal baseline on the same batches (diffplan.baselines.goal).
     Returns (ema params, model config, seconds)."""
     model_config = spec.model_config(model_size)
     result, seconds = recipes.train_denoiser(
-        model_config, spec.train_config(seed, steps, checkpoint_every), spec.recipe(), out_dir,
+        model_config, spec.train_config(seed, steps, checkpoint_every, objective),
+        spec.recipe(), out_dir,
         model_size=model_size, progress=progress, callback=callback)
     return result.ema_params, model_config, seconds
 

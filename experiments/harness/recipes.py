@@ -40,17 +40,20 @@ def warmup(warmup_steps: int, steps: int) -> int:
 def train_config(*, seed: int, steps: int, batch_size: int, lr: float, warmup_steps: int,
                  num_gen_channels: int, prediction: str, checkpoint_every: int,
                  max_log_every: int, num_train_timesteps: int = 100,
-                 timestep_power: float = 1.0):
+                 timestep_power: float = 1.0, objective: str = "diffusion"):
     """The TrainConfig of an experiment: warm-up at most a tenth of the steps, a log every
     min(max_log_every, steps / 10) steps, num_train_timesteps diffusion training timesteps
     (the paper's 100 unless the world's spec says otherwise), drawn with timestep_power (the
-    paper's uniform draw: 1)."""
+    paper's uniform draw: 1). objective "goal" trains the learned-goal baseline instead
+    (``diffplan.baselines.goal``), which predicts the clean plan ("x0") by construction."""
     from diffplan.train import TrainConfig
 
     return TrainConfig(seed=seed, steps=steps, batch_size=batch_size, lr=lr,
                        warmup_steps=warmup(warmup_steps, steps),
-                       num_gen_channels=num_gen_channels, prediction=prediction,
+                       num_gen_channels=num_gen_channels,
+                       prediction="x0" if objective == "goal" else prediction,
                        num_train_timesteps=num_train_timesteps, timestep_power=timestep_power,
+                       objective=objective,
                        checkpoint_every=checkpoint_every,
                        log_every=max(1, min(max_log_every, steps // 10)))
 
@@ -59,12 +62,16 @@ def train_denoiser(model_config, config, recipe, out_dir: str, *, model_size: st
                    progress: bool = True, callback=None):
     """Trains a Denoiser of model_config with ``config`` (a TrainConfig) on the recipe's batches
     into out_dir (resuming if it holds a checkpoint of the same settings); the checkpoint's
-    metadata records the recipe and the model size. Returns (TrainResult, seconds)."""
+    metadata records the recipe and the model size. With ``config.objective`` "goal" the same
+    network learns the learned-goal baseline instead (``diffplan.baselines.goal``). Returns
+    (TrainResult, seconds)."""
+    from diffplan.baselines.goal import GoalClassifier
     from diffplan.denoiser import Denoiser
     from diffplan.train import train
 
     start = time.time()
-    result = train(Denoiser(model_config), model_config, config, recipe.batch_fn(), out_dir,
+    model = (GoalClassifier if config.objective == "goal" else Denoiser)(model_config)
+    result = train(model, model_config, config, recipe.batch_fn(), out_dir,
                    init_batch=recipe.init_batch(), progress=progress, callback=callback,
                    extra_metadata={**recipe.metadata(), "model_size": model_size})
     return result, time.time() - start
