@@ -21,11 +21,20 @@ import numpy as np
 
 PAD_ID = 0
 
-LANGUAGES = ("canonical", "paraphrased", "unseen")
-"""How an episode's instruction is phrased, in both worlds: ``canonical`` in each sentence's
-template 0 (the paper's wording); ``paraphrased`` in a uniformly drawn training paraphrase (never
-template 0); ``unseen`` in a uniformly drawn held-out phrasing that no training batch ever
-contains (every word of it occurs in a training phrasing: new wording, not new words)."""
+UNSEEN = "unseen"
+DEVELOPMENT = "development"
+HELDOUT = "heldout"
+LANGUAGES = ("canonical", "paraphrased", UNSEEN)
+"""How an episode's instruction is phrased (the grid world's languages; a world names its own
+with :meth:`TemplateSplit.languages`): ``canonical`` in each sentence's template 0 (the paper's
+wording); ``paraphrased`` in a uniformly drawn training paraphrase (never template 0);
+``unseen`` in a uniformly drawn held-out phrasing that no training batch ever contains (every
+word of it occurs in a training phrasing: new wording, not new words)."""
+NEVER_TRAINED = (UNSEEN, DEVELOPMENT, HELDOUT)
+"""Languages no training batch ever draws: a split's :attr:`TemplateSplit.unseen` phrasings,
+named ``unseen`` (the grid world) or ``development`` (phrasings that were looked at to choose
+things, so their rows are development numbers: the Kuka world), and its sealed held-out
+phrasings (:attr:`TemplateSplit.sealed`, the language ``heldout``)."""
 TRAINING = "mixed"
 """The phrasing of training examples (not an evaluation language): canonical half of the time,
 otherwise a uniformly drawn training paraphrase (:meth:`TemplateSplit.pool`)."""
@@ -167,30 +176,43 @@ class TemplateSplit:
     """Which phrasings of one sentence kind are canonical, trained on, or held out.
 
     templates: the phrasings (template 0 canonical); unseen: the indices held out of training
-    (a fixed third, never 0); extra: indices of training-only phrasings, drawn only by the
-    :data:`BROAD` training language (never by an evaluation language), each made of the
-    training phrasings' words (so that adding them leaves the vocabulary as it was). Raises
-    ValueError if a held-out or extra phrasing has a word (slots excepted) that no training
-    phrasing has, or if the indices are out of range or overlap.
+    (a fixed third, never 0), drawn by the language ``unseen_name`` ("unseen", or
+    "development" where they were looked at to choose things); extra: indices of
+    training-only phrasings, drawn only by the :data:`BROAD` training language (never by an
+    evaluation language); sealed: indices of a sealed held-out set, drawn only by the
+    language :data:`HELDOUT` (never trained on, nothing ever chosen on it). Every phrasing is
+    made of the training phrasings' words (so that adding one leaves the vocabulary as it
+    was). Raises ValueError if a held-out, extra or sealed phrasing has a word (slots
+    excepted) that no training phrasing has, or if the indices are out of range or overlap.
     """
 
     templates: tuple[str, ...]
     unseen: tuple[int, ...]
     slots: tuple[str, ...] = ()
     extra: tuple[int, ...] = ()
+    sealed: tuple[int, ...] = ()
+    unseen_name: str = UNSEEN
 
     def __post_init__(self):
         n = len(self.templates)
         if len(set(self.templates)) != n:
             raise ValueError("templates must be distinct")
+        if self.unseen_name not in (UNSEEN, DEVELOPMENT):
+            raise ValueError(f"unseen_name must be {UNSEEN!r} or {DEVELOPMENT!r}, got "
+                             f"{self.unseen_name!r}")
         if not all(0 < i < n for i in self.unseen) or len(set(self.unseen)) != len(self.unseen):
             raise ValueError(f"unseen must be distinct indices in 1..{n - 1}, got {self.unseen}")
         if not all(0 < i < n for i in self.extra) or len(set(self.extra)) != len(self.extra) \
                 or set(self.extra) & set(self.unseen):
             raise ValueError(f"extra must be distinct indices in 1..{n - 1}, none held out, got "
                              f"{self.extra}")
+        if not all(0 < i < n for i in self.sealed) or len(set(self.sealed)) != len(
+                self.sealed) or set(self.sealed) & (set(self.unseen) | set(self.extra)):
+            raise ValueError(f"sealed must be distinct indices in 1..{n - 1}, neither held out "
+                             f"nor extra, got {self.sealed}")
         known = self.training_words()
-        for kind, indices in (("held-out", self.unseen), ("extra", self.extra)):
+        for kind, indices in (("held-out", self.unseen), ("extra", self.extra),
+                              ("sealed", self.sealed)):
             for i in indices:
                 new = sorted(template_words([self.templates[i]], self.slots) - known)
                 if new:
@@ -200,9 +222,16 @@ class TemplateSplit:
     @property
     def training(self) -> tuple[int, ...]:
         """Template indices training draws from in every training language (canonical and the
-        training paraphrases; the extra phrasings are not among them)."""
-        return tuple(i for i in range(len(self.templates))
-                     if i not in self.unseen and i not in self.extra)
+        training paraphrases; the extra, held-out and sealed phrasings are not among them)."""
+        excluded = set(self.unseen) | set(self.extra) | set(self.sealed)
+        return tuple(i for i in range(len(self.templates)) if i not in excluded)
+
+    @property
+    def languages(self) -> tuple[str, ...]:
+        """The evaluation languages this split answers to: canonical, paraphrased, the
+        held-out phrasings' name (``unseen_name``) and, with a sealed set, :data:`HELDOUT`."""
+        return ("canonical", "paraphrased", self.unseen_name) + (
+            (HELDOUT,) if self.sealed else ())
 
     def training_words(self) -> set[str]:
         """Every word of the training phrasings (slots excepted): the vocabulary they need,
@@ -211,16 +240,19 @@ class TemplateSplit:
 
     def pool(self, language: str) -> np.ndarray:
         """int32 (P,) template indices an episode of ``language`` draws from uniformly
-        (LANGUAGES, or TRAINING: template 0 repeated once per training paraphrase, then the
-        paraphrases, so that half of the draws are canonical; or BROAD: the training
+        (:attr:`languages`, or TRAINING: template 0 repeated once per training paraphrase,
+        then the paraphrases, so that half of the draws are canonical; or BROAD: the training
         paraphrases and the extra phrasings)."""
         paraphrases = [i for i in self.training if i != 0]
-        pools = {"canonical": [0], "paraphrased": paraphrases, "unseen": list(self.unseen),
+        pools = {"canonical": [0], "paraphrased": paraphrases,
+                 self.unseen_name: list(self.unseen),
                  TRAINING: [0] * len(paraphrases) + paraphrases,
                  BROAD: paraphrases + list(self.extra)}
+        if self.sealed:
+            pools[HELDOUT] = list(self.sealed)
         if language not in pools:
             raise ValueError(f"unknown language {language!r}; expected one of "
-                             f"{LANGUAGES + TRAINING_ONLY}")
+                             f"{self.languages + TRAINING_ONLY}")
         return np.asarray(pools[language], np.int32)
 
 
@@ -228,21 +260,23 @@ TRAINING_ONLY = (TRAINING, BROAD)
 """Phrasings only training draws (never an evaluation row)."""
 
 
-def check_language(language: str, training: bool = True) -> str:
-    """language if it is one of LANGUAGES (or TRAINING_ONLY when ``training``), else
-    ValueError."""
-    allowed = LANGUAGES + (TRAINING_ONLY if training else ())
+def check_language(language: str, training: bool = True,
+                   languages: Sequence[str] = LANGUAGES) -> str:
+    """language if it is one of ``languages`` (default the grid world's LANGUAGES; or
+    TRAINING_ONLY when ``training``), else ValueError."""
+    allowed = tuple(languages) + (TRAINING_ONLY if training else ())
     if language not in allowed:
         raise ValueError(f"unknown language {language!r}; expected one of {allowed}")
     return language
 
 
-def check_training_language(language: str) -> str:
-    """language if training may draw it (ValueError for "unseen": the held-out phrasings never
-    reach a training batch), checked as :func:`check_language`."""
-    if language == "unseen":
-        raise ValueError("training never draws the held-out ('unseen') phrasings")
-    return check_language(language)
+def check_training_language(language: str, languages: Sequence[str] = LANGUAGES) -> str:
+    """language if training may draw it (ValueError for :data:`NEVER_TRAINED`: the
+    held-out, development and sealed phrasings never reach a training batch), checked as
+    :func:`check_language` against ``languages`` (a world's evaluation languages)."""
+    if language in NEVER_TRAINED:
+        raise ValueError(f"training never draws the held-out ({language!r}) phrasings")
+    return check_language(language, languages=languages)
 
 
 def draw_template(key, pool, shape=()):

@@ -1,4 +1,4 @@
-"""A text-only probe: do the Kuka relation phrasings teach a tagger to read held-out ones.
+"""A text-only probe: do the Kuka relation phrasings teach a tagger to read development ones.
 
 `python -m experiments.kuka_role_probe --help`; see experiments/kuka/role_probe.py.
 """

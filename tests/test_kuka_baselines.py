@@ -22,7 +22,7 @@ from envs.kuka.config import COLUMNS
 from envs.kuka.episode import episode_keys, generate
 from envs.kuka.task import view_of_condition
 
-LANGUAGES = ("canonical", "paraphrased", "unseen")
+LANGUAGES = grammar.LANGUAGES
 
 
 def _python_sentences(ids):

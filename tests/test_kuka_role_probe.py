@@ -32,7 +32,7 @@ def test_roles_follow_the_slots_of_each_template():
 
 @pytest.mark.parametrize("template, needle", [
     ("Set the {bottom} block beside the {top} block.", "'beside'"),
-    ("Set the {bottom} block under the {top} block.", "held-out"),
+    ("Set the {bottom} block under the {top} block.", "a development phrasing"),
     ("Put the {top} block on the {top} block.", "exactly once"),
 ])
 def test_phrasings_that_would_spoil_the_probe_are_refused(template, needle):
@@ -51,7 +51,7 @@ def test_a_tiny_run_writes_its_table_and_json(tmp_path, capsys):
     for key in ["training"] + [f"#{k}" for k in grammar.RELATION_SPLIT.unseen]:
         assert 0.0 <= row[key] <= 100.0
     out = capsys.readouterr().out
-    assert "#11" in out and "taggers that read every held-out phrasing" in out
+    assert "#11" in out and "taggers that read every development phrasing" in out
 
 
 def test_broad_trains_on_the_grammar_extras_once():

@@ -1,7 +1,7 @@
 """The phrasing split of both worlds (diffplan.language.TemplateSplit): canonical, training
-paraphrases and held-out ("unseen") phrasings; no held-out phrasing in any training batch; a word
-outside the vocabulary refused in one line naming it; the slot matcher against a plain-Python
-oracle."""
+paraphrases and held-out phrasings ("unseen" in the grid world, "development" in the Kuka world);
+no held-out phrasing in any training batch; a word outside the vocabulary refused in one line
+naming it; the slot matcher against a plain-Python oracle."""
 from __future__ import annotations
 
 import jax
@@ -73,7 +73,7 @@ def test_pools(name):
     assert 0 not in paraphrased and not set(paraphrased) & set(split.unseen)
     assert sorted(paraphrased + [0] + list(split.unseen) + list(split.extra)) == \
         list(range(len(split.templates)))
-    assert split.pool("unseen").tolist() == list(split.unseen)
+    assert split.pool(split.unseen_name).tolist() == list(split.unseen)
     mixed = split.pool(language.TRAINING)
     assert (mixed == 0).mean() == 0.5 and not set(mixed.tolist()) & set(split.unseen)
     assert not set(mixed.tolist()) & set(split.extra)
@@ -242,13 +242,16 @@ def test_no_held_out_phrasing_in_a_kuka_training_batch():
               | {("tower", i) for i in kuka_grammar.TOWER_SPLIT.unseen})
     assert not set(found) & unseen
     assert ("relation", 0) in found and any(k == "relation" and i > 0 for k, i in found)
-    with pytest.raises(ValueError, match="held-out"):
-        Recipe(specs=(TaskSpec("stacking", False, "unseen"),))
+    for never in ("development", "unseen"):  # "unseen": the old name, refused as well
+        with pytest.raises(ValueError, match="development"):
+            Recipe(specs=(TaskSpec("stacking", False, never),))
+    with pytest.raises(ValueError, match="held-out"):  # a recorded spec under the old name
+        Recipe(specs=[["stacking", False, "unseen"]])
 
 
 def test_a_broad_kuka_training_batch_draws_the_extras_and_no_held_out_phrasing():
     """The "broad" training language adds the extra relation phrasings; evaluation rows
-    (paraphrased, unseen) never draw them, and they leave the vocabulary as it was."""
+    (paraphrased, development) never draw them, and they leave the vocabulary as it was."""
     import dataclasses
 
     from envs.kuka.config import COLUMNS
@@ -266,7 +269,7 @@ def test_a_broad_kuka_training_batch_draws_the_extras_and_no_held_out_phrasing()
     assert not relations & set(kuka_grammar.RELATION_SPLIT.unseen)
     keys = jax.random.split(jax.random.PRNGKey(2), 32)
     for spec in COLUMNS.values():
-        for phrasing in ("paraphrased", "unseen"):
+        for phrasing in ("paraphrased", "development"):
             spec = dataclasses.replace(spec, language=phrasing)
             rows = np.asarray(jax.vmap(lambda k: generate(k, spec).tokens)(keys))
             for row in rows:
@@ -292,14 +295,43 @@ def test_template_split_refuses_bad_extras():
     assert list(split.pool("mixed")) == [0, 1] and list(split.pool("unseen")) == [2]
 
 
-def test_kuka_unseen_episodes_use_held_out_phrasings_only():
+def test_a_split_with_development_and_sealed_pools():
+    """A world may name its held-out pool "development" and add a sealed pool ("heldout"):
+    training languages never draw either, and the grid world's split is as it was."""
+    templates = ("go to the {x} .", "walk to the {x} .", "go walk to the {x} .",
+                 "to the {x} go .", "the {x} walk to .")
+    split = language.TemplateSplit(templates, (2,), ("{x}",), sealed=(3, 4),
+                                   unseen_name=language.DEVELOPMENT)
+    assert split.languages == ("canonical", "paraphrased", "development", "heldout")
+    assert list(split.pool("development")) == [2] and list(split.pool("heldout")) == [3, 4]
+    assert split.training == (0, 1)
+    for lang in language.TRAINING_ONLY + ("canonical", "paraphrased"):
+        assert not set(split.pool(lang).tolist()) & {2, 3, 4}
+    for lang in ("unseen", "klingon"):
+        with pytest.raises(ValueError, match="unknown language"):
+            split.pool(lang)
+    for lang in language.NEVER_TRAINED:
+        with pytest.raises(ValueError, match="held-out"):
+            language.check_training_language(lang, split.languages)
+    for name, split_of_grid in grid_grammar.SPLITS.items():
+        assert split_of_grid.languages == language.LANGUAGES and not split_of_grid.sealed
+    for bad, match in (({"sealed": (2,)}, "sealed must be distinct"),
+                       ({"sealed": (0,)}, "sealed must be distinct"),
+                       ({"unseen_name": "heldout"}, "unseen_name must be")):
+        with pytest.raises(ValueError, match=match):
+            language.TemplateSplit(templates, (2,), ("{x}",), **bad)
+    with pytest.raises(ValueError, match=r"sealed phrasing .* \['run'\]"):
+        language.TemplateSplit(templates + ("run to the {x} .",), (2,), ("{x}",), sealed=(5,))
+
+
+def test_kuka_development_episodes_use_development_phrasings_only():
     from envs.kuka.config import COLUMNS
     import dataclasses
     from envs.kuka.episode import generate
 
     keys = jax.random.split(jax.random.PRNGKey(2), 16)
     for spec in COLUMNS.values():
-        spec = dataclasses.replace(spec, language="unseen")
+        spec = dataclasses.replace(spec, language="development")
         tokens = np.asarray(jax.vmap(lambda k: generate(k, spec).tokens)(keys))
         for row in tokens:
             for kind, i in kuka_grammar.sentence_templates(row):

@@ -16,7 +16,7 @@ from envs.kuka import grammar, reader
 from experiments.kuka import reader as train_reader_cli
 from experiments.harness.core import REPO_ROOT
 
-PHRASINGS = ("canonical", "paraphrased", "unseen", language.BROAD)
+PHRASINGS = ("canonical", "paraphrased", "development", language.BROAD)
 
 
 @functools.lru_cache(maxsize=None)
@@ -109,7 +109,7 @@ def tiny_reader():
 
 def test_ensemble_probabilities_are_the_taggers_mean(tiny_reader):
     config, params = tiny_reader
-    tokens = jnp.asarray(reader._instructions(jax.random.PRNGKey(1), 3, "unseen")[0])
+    tokens = jnp.asarray(reader._instructions(jax.random.PRNGKey(1), 3, "development")[0])
     probs = role_probabilities(config, params, tokens)
     assert probs.shape == (3, grammar.MAX_TOKENS, 2)
     np.testing.assert_allclose(probs.sum(-1), 1.0, rtol=1e-5)
@@ -135,10 +135,10 @@ def test_train_reader_cli_end_to_end(tmp_path, capsys):
     out = tmp_path / "reader"
     result = train_reader_cli.main(["--out", str(out), "--seeds", "0", "--steps", "2",
                                     "--json", str(tmp_path / "r.json"), "--no-progress"])
-    assert set(result["read"]) == {"canonical", "paraphrased", "unseen"}
+    assert set(result["read"]) == {"canonical", "paraphrased", "development"}
     assert all(0.0 <= v <= 100.0 for v in result["read"].values())
     printed = capsys.readouterr().out
-    assert "restated canonically" in printed and "unseen" in printed
+    assert "restated canonically" in printed and "development" in printed
     assert load_reader(str(out))[2]["read_validation"] == result["read"]
     with pytest.raises(SystemExit) as info:
         train_reader_cli.main(["--out", str(out), "--steps", "2", "--no-progress"])
@@ -146,7 +146,7 @@ def test_train_reader_cli_end_to_end(tmp_path, capsys):
     assert "not empty" in capsys.readouterr().err
 
 
-def test_shipped_reader_loads_and_reads_held_out_phrasings():
+def test_shipped_reader_loads_and_reads_development_phrasings():
     """checkpoints/kuka_reader (NOTE.md: 100.0 / 100.0 / 100.0 on these 1000 instructions)."""
     shipped = os.path.join(REPO_ROOT, "checkpoints", "kuka_reader")
     with open(os.path.join(shipped, "NOTE.md")) as f:
@@ -155,10 +155,10 @@ def test_shipped_reader_loads_and_reads_held_out_phrasings():
     assert config == reader.reader_config() and meta["ensemble"] == 5
     key = jax.random.PRNGKey(1000)
     rates = {p: reader.read_rate(config, params, key, 1000, p)
-             for p in ("canonical", "paraphrased", "unseen")}
+             for p in ("canonical", "paraphrased", "development")}
     assert rates["canonical"] == 100.0 and rates["paraphrased"] >= 99.0
-    assert rates["unseen"] >= 99.0
-    # the README's example, a held-out phrasing typed as text
+    assert rates["development"] >= 99.0
+    # the README's example, a development phrasing typed as text
     out = reader.read_text(config, params, "The red block should be below the green block.")
     assert grammar.decode(out) == "Stack the green block on top of the red block."
 

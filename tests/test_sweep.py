@@ -73,6 +73,8 @@ def test_sweep_rows_files_and_compilation_reuse(tiny_checkpoint, tmp_path):
     ({"task": "kuka/rearrangement", "multi": "yes"}, "multi must be bool"),
     ({"task": "kuka/stacking", "language": "french"}, "language must be one of"),
     ({"setting": "p_mo2g", "language": "both"}, "language must be one of"),
+    ({"task": "kuka/stacking", "language": "unseen"}, "language must be one of"),
+    ({"setting": "p_mo2g", "language": "development"}, "language must be one of"),
     ({"task": "kuka/stacking", "num_steps": 500}, "exceeds its schedule"),
     ({"setting": "p_mo2g", "psi": "teleport"}, "psi must be one of"),
     ({"task": "kuka/stacking", "psi": "follow"}, "do not apply to kuka/stacking"),
@@ -242,7 +244,7 @@ def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
     path = tmp_path / "kuka.json"
     path.write_text(json.dumps([{**common, "modes": "on_the_fly"},
                                 {**common, "modes": "on_the_fly", "multi": True},
-                                {**common, "modes": "on_the_fly", "language": "unseen",
+                                {**common, "modes": "on_the_fly", "language": "development",
                                  "reader": "checkpoints/kuka_reader"}]))
     result = sweep.main(["--config", str(path), "--json", str(tmp_path / "s.json"),
                          "--csv", str(tmp_path / "s.csv"), "--trajectories",
@@ -252,7 +254,7 @@ def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
     assert [(r["modes"], r["multi"], r["column"]) for r in rows] == [
         ("on_the_fly", False, "single"), ("on_the_fly", True, "multi"),
         ("on_the_fly", False, "single")]
-    # Held-out phrasings restated by the shipped reader: the same relations as the canonical
+    # Development phrasings restated by the shipped reader: the same relations as the canonical
     # episodes of the seed, read back to their exact tokens, so the same rollout and row.
     read = rows.pop()
     assert read["reader"] == "checkpoints/kuka_reader" and read["method"].endswith("read")

@@ -25,10 +25,10 @@ NO_BLOCK = -1
 @dataclasses.dataclass(frozen=True)
 class TaskSpec:
     """A task (hashable; pass as a static argument). kind: "stacking" or "rearrangement";
-    multi: several instructed relations (3 stacking, 2 rearrangement) or one; language:
-    "canonical", "paraphrased" or "unseen" (grammar.LANGUAGES: the held-out phrasings that
-    training never sees), or for training only "broad" (the training paraphrases and the
-    extra phrasings, grammar.EXTRA)."""
+    multi: several instructed relations (3 stacking, 2 rearrangement) or one; language: one
+    of grammar.LANGUAGES ("canonical", "paraphrased", "development": phrasings training never
+    sees but that were chosen on), or for training only "broad" (the training paraphrases and
+    the extra phrasings, grammar.EXTRA)."""
 
     kind: str
     multi: bool = False

@@ -7,6 +7,12 @@ canonical phrasing (template 0, the paper's Table 2 instructions) and paraphrase
 Table 5 "complex" instructions), some of which invert the preposition and name the lower block
 first ("Put the red block below the green block" means green on red). Templates have the slots
 ``{top}`` and ``{bottom}``; token ids are filled in JAX (:func:`instruction_tokens`).
+
+Besides the training phrasings, each kind has **development** phrasings (relation 8-11, tower
+4-5; the language ``development``): no training batch contains them, but they were looked at
+to choose things (the training-only extras were picked by scoring taggers on them, the reader's
+sentence-local encoder after reading the evaluation seeds' per-phrasing breakdown), so what is
+measured on them is a development number, not a held-out one.
 """
 from __future__ import annotations
 
@@ -29,7 +35,8 @@ RELATION_TEMPLATES: tuple[str, ...] = (
     "Put the {top} block above the {bottom} block.",
     "Move the {top} block so that it rests on the {bottom} block.",
     "The {bottom} block should be beneath the {top} block.",
-    # held out of training (8-11), made of the training phrasings' words; 9 and 11 inverted
+    # development phrasings (8-11): never trained on, but chosen on (see the module
+    # docstring); made of the training phrasings' words; 9 and 11 inverted
     "Put the {top} block on top of the {bottom} block.",
     "The {bottom} block should be below the {top} block.",
     "Move the {top} block onto the {bottom} block.",
@@ -44,13 +51,15 @@ RELATION_TEMPLATES: tuple[str, ...] = (
     "The {top} block should be above the {bottom} block.",
     "Place the {top} block onto the {bottom} block.",
 )
-"""One relation "top on bottom"; 0 is canonical, 1-7 the training paraphrases, 8-11 held out,
-12-18 training-only extras (:data:`EXTRA`). Templates 2, 4, 7, 9, 11, 12, 13, 14 and 16 invert
-the preposition (name the lower block first)."""
-INVERTED = (2, 4, 7, 9, 11, 12, 13, 14, 16)
+"""One relation "top on bottom"; 0 is canonical, 1-7 the training paraphrases, 8-11 the
+development phrasings, 12-18 training-only extras (:data:`EXTRA`)."""
+INVERTED = tuple(k for k, t in enumerate(RELATION_TEMPLATES) if t.index("{bottom}") < t.index(
+    "{top}"))
+"""The relation phrasings that name the lower block first (2, 4, 7, 9, 11, 12, 13, 14, 16 of
+the first 19: the preposition inverted, "Put the {bottom} block below the {top} block.")."""
 EXTRA = tuple(range(12, 19))
 """Relation phrasings only the ``broad`` training language draws (``diffplan.language.BROAD``):
-the ``paraphrased`` and ``unseen`` evaluation rows never contain them, and they add no word, so
+the ``paraphrased`` and ``development`` evaluation rows never contain them, and they add no word, so
 the vocabulary (and every checkpoint's) is the same with or without them."""
 
 TOWER_TEMPLATES: tuple[str, ...] = (
@@ -58,21 +67,28 @@ TOWER_TEMPLATES: tuple[str, ...] = (
     "Stack all four blocks into one tower.",
     "Make a single tower with the four blocks.",
     "Pile the four blocks up into one tower.",
-    # held out of training (4-5)
+    # development phrasings (4-5): never trained on, but chosen on
     "Build one tower with all four blocks.",
     "Make a tower of the four blocks.",
 )
 """The tower sentence of single-constraint stacking; 0 is canonical, 1-3 the training
-paraphrases, 4-5 held out."""
+paraphrases, 4-5 the development phrasings."""
 
-LANGUAGES = language.LANGUAGES
+RELATION_SPLIT = language.TemplateSplit(RELATION_TEMPLATES, (8, 9, 10, 11), SLOTS, EXTRA,
+                                        unseen_name=language.DEVELOPMENT)
+TOWER_SPLIT = language.TemplateSplit(TOWER_TEMPLATES, (4, 5), SLOTS,
+                                     unseen_name=language.DEVELOPMENT)
+"""A third of each sentence kind's phrasings is kept out of training as development phrasings
+(every word of them occurs in a training phrasing, so the vocabulary is that of the training
+phrasings)."""
+LANGUAGES = RELATION_SPLIT.languages
 """canonical: every sentence in its template 0; paraphrased: every sentence in a uniformly drawn
-training paraphrase (never template 0); unseen: every sentence in a uniformly drawn held-out
-phrasing (:data:`RELATION_SPLIT`, :data:`TOWER_SPLIT`)."""
-RELATION_SPLIT = language.TemplateSplit(RELATION_TEMPLATES, (8, 9, 10, 11), SLOTS, EXTRA)
-TOWER_SPLIT = language.TemplateSplit(TOWER_TEMPLATES, (4, 5), SLOTS)
-"""A third of each sentence kind's phrasings is held out of training (every word of them occurs
-in a training phrasing, so the vocabulary is that of the training phrasings)."""
+training paraphrase (never template 0); development: every sentence in a uniformly drawn
+development phrasing (:data:`RELATION_SPLIT`, :data:`TOWER_SPLIT`)."""
+RENAMED = {language.UNSEEN: language.DEVELOPMENT}
+"""Kuka language names recorded before they were renamed (older metadata, sweep files and
+JSON): "unseen" drew relation templates 8-11 and tower templates 4-5, the development
+phrasings."""
 
 
 def _build_vocab() -> tuple[str, ...]:
@@ -101,8 +117,17 @@ language ``broad``."""
 def check_phrasing(phrasing: str) -> str:
     """phrasing if it is one of EPISODE_LANGUAGES, else ValueError naming them."""
     if phrasing not in EPISODE_LANGUAGES:
-        raise ValueError(f"unknown language {phrasing!r}; expected one of {EPISODE_LANGUAGES}")
+        renamed = (f" ({phrasing!r} is now {RENAMED[phrasing]!r})" if phrasing in RENAMED
+                   else "")
+        raise ValueError(f"unknown language {phrasing!r}; expected one of "
+                         f"{EPISODE_LANGUAGES}{renamed}")
     return phrasing
+
+
+def current_language(name: str) -> str:
+    """The current name of a recorded Kuka language name (:data:`RENAMED`: "unseen" ->
+    "development"); any other name unchanged. For reading old metadata, never for flags."""
+    return RENAMED.get(name, name)
 
 
 def block_token(block):
@@ -129,8 +154,8 @@ def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canoni
     constraints: int32 (MAX_RELATIONS, 2) (top, bottom) block indices, -1 rows are absent;
     tower_sentence: bool () starts with the tower sentence; phrasing (static, LANGUAGES): each
     sentence in its canonical phrasing, or in one drawn uniformly from the training paraphrases
-    or from the held-out phrasings; or (training only) "broad": the training paraphrases and
-    the extras (:data:`EXTRA`).
+    or from the development phrasings; or (training only) "broad": the training paraphrases
+    and the extras (:data:`EXTRA`).
     """
     check_phrasing(phrasing)
     k_tower, k_rel = jax.random.split(key)

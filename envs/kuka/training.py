@@ -155,13 +155,14 @@ def spec_examples(example_fn, key, batch_size: int, specs, perturb_prob: float):
 
 
 def as_task_spec(spec) -> TaskSpec:
-    """A TaskSpec, or its fields (kind, multi, language) as a sequence (JSON's lists), as one.
+    """A TaskSpec, or its fields (kind, multi, language) as a sequence (JSON's lists), as one
+    (a language name recorded before a rename read as today's: grammar.current_language).
     Raises ValueError naming anything else."""
     if isinstance(spec, TaskSpec):
         return spec
     if (isinstance(spec, (tuple, list)) and len(spec) == 3 and isinstance(spec[0], str)
             and isinstance(spec[1], bool) and isinstance(spec[2], str)):
-        return TaskSpec(*spec)
+        return TaskSpec(spec[0], spec[1], grammar.current_language(spec[2]))
     raise ValueError(f"a task spec is a TaskSpec or [kind, multi, language] such as "
                      f"[\"rearrangement\", true, \"paraphrased\"], got {spec!r}")
 
@@ -197,7 +198,7 @@ class Recipe:
         if not self.specs:
             raise ValueError("specs must name at least one task spec")
         for spec in self.specs:
-            check_training_language(spec.language)
+            check_training_language(spec.language, grammar.LANGUAGES)
 
     def batch_fn(self):
         """batch_fn(key, batch_size) -> diffplan.train.Batch."""

@@ -23,8 +23,9 @@ import numpy as np
 from diffplan.language import LANGUAGES
 
 LANGUAGE_CHOICES = {**{language: (language,) for language in LANGUAGES}, "all": LANGUAGES}
-"""--language of the experiment CLIs and sweeps: one phrasing (diffplan.language.LANGUAGES;
-"unseen" the held-out phrasings training never saw) or a row for each ("all")."""
+"""--language of the grid-world CLIs: one phrasing (diffplan.language.LANGUAGES; "unseen" the
+held-out phrasings training never saw) or a row for each ("all"). The Kuka CLIs' are
+experiments.kuka.spec.LANGUAGE_CHOICES."""
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CHECKPOINT_ROOT = os.path.join(REPO_ROOT, "checkpoints")

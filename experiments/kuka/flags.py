@@ -35,9 +35,9 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
     p.add_argument("--language", choices=tuple(LANGUAGE_CHOICES), default="canonical",
                    help="instruction phrasing: 'canonical' (Table 2, default), 'paraphrased' "
                         "with inverted prepositions (Table 5, the training paraphrases), "
-                        "'unseen' (held-out phrasings training never saw, made of its words), "
-                        "'both' (canonical and paraphrased: every row for each) or 'all' "
-                        "(all three)")
+                        "'development' (phrasings training never saw, made of its words, but "
+                        "chosen on: development numbers), 'both' (canonical and paraphrased: "
+                        "every row for each) or 'all' (every one)")
     p.add_argument("--modes", default=",".join(MODES),
                    help=f"comma-separated planning modes (default {','.join(MODES)}); the "
                         "first of them gives the main row")

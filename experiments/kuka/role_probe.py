@@ -3,7 +3,8 @@
 A small tagger (diffplan's TextEncoder, a linear head) is trained, from scratch for each seed, on
 single relation sentences in the training phrasings (``envs.kuka.grammar``, templates 0-7, plus
 any ``--extra`` phrasing) to say of every block word whether it names the upper or the lower
-block. It is then read on the held-out phrasings (8-11), which training never shows. A
+block. It is then read on the development phrasings (8-11), which training never shows (the
+sealed held-out phrasings are never read here: nothing is chosen on them). A
 sentence counts as read when both of its block words get their role. This is the part of
 language that a planner must get from the words alone; the probe asks whether a set of training
 phrasings allows it at all, before an hour of denoiser training is spent on it. It is not the
@@ -27,18 +28,20 @@ EVAL_SENTENCES = 500
 
 def check_extra(templates: Sequence[str]) -> list[str]:
     """The --extra phrasings, or ValueError naming what is wrong with one: each has the slots
-    {top} and {bottom} once and only words of the training phrasings (so the held-out
+    {top} and {bottom} once and only words of the training phrasings (so the development
     phrasings stay made of known words and the vocabulary does not change), and none is a
-    held-out phrasing."""
+    development or sealed held-out phrasing."""
     from diffplan import language
     from envs.kuka import grammar
 
     split = grammar.RELATION_SPLIT
     known = split.training_words()
-    held_out = {split.templates[k] for k in split.unseen}
+    never = {**{split.templates[k]: "a development" for k in split.unseen},
+             **{split.templates[k]: "a sealed held-out" for k in split.sealed}}
     for template in templates:
-        if template in held_out:
-            raise ValueError(f"{template!r} is a held-out phrasing; it cannot be trained on")
+        if template in never:
+            raise ValueError(f"{template!r} is {never[template]} phrasing; it cannot be "
+                             "trained on")
         for slot in grammar.SLOTS:
             if template.count(slot) != 1:
                 raise ValueError(f"{template!r} must hold {slot} exactly once")
@@ -78,7 +81,7 @@ def role_batch(key, templates, n: int):
 
 
 def train_and_read(seed: int, train, held_out, steps: int, word_dropout: float):
-    """(training-phrasing rate, [rate of each held-out template]) in percent of sentences
+    """(training-phrasing rate, [rate of each development template]) in percent of sentences
     read right, for a tagger (``diffplan.reader.Tagger`` over one sentence) trained ``steps``
     steps of BATCH sentences from seed."""
     import jax
@@ -115,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m experiments.kuka_role_probe",
         description=__doc__.split("\n\n")[0] + " Trains a text-only tagger on the Kuka "
         "relation phrasings of training (and --extra ones) and reports how often it reads "
-        "the roles of the held-out phrasings right.")
+        "the roles of the development phrasings right.")
     parser.add_argument("--extra", action="append", default=[], metavar="TEMPLATE",
                         help="an added training phrasing with the slots {top} and {bottom}, "
                              "made of the training phrasings' words; repeatable")
@@ -159,18 +162,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                        args.word_dropout)
         rows.append({"method": f"seed {seed}", "training": trained,
                      **{f"#{k}": r for k, r in zip(split.unseen, read)},
-                     "all_held_out": min(read) == 100.0})
+                     "all_development": min(read) == 100.0})
     columns = [("method", "{}", "tagger"), ("training", "{:9.1f}", "training")] + [
         (f"#{k}", "{:7.1f}", f"#{k}") for k in split.unseen]
     print(f"sentences whose block words get their roles, % of {EVAL_SENTENCES} per phrasing "
-          f"({args.steps} steps; held-out: " + "; ".join(
+          f"({args.steps} steps; development: " + "; ".join(
               f"#{k} {t!r}" for k, t in zip(split.unseen, held)) + ")")
     print(tables.format_table(rows, columns))
-    print(f"taggers that read every held-out phrasing: "
-          f"{sum(r['all_held_out'] for r in rows)} of {len(rows)}")
+    print(f"taggers that read every development phrasing: "
+          f"{sum(r['all_development'] for r in rows)} of {len(rows)}")
     result = {"experiment": "kuka_role_probe", "extra": extra, "steps": args.steps,
               "word_dropout": args.word_dropout, "seeds": seeds,
-              "held_out": dict(zip(map(str, split.unseen), held)), "rows": rows,
+              "development": dict(zip(map(str, split.unseen), held)), "rows": rows,
               "machine": harness.machine()}
     if args.json:
         cli.write_json(args.json, result)

@@ -6,7 +6,8 @@ import os
 import warnings
 
 from experiments.harness import recipes
-from experiments.harness.core import CHECKPOINT_ROOT, LANGUAGE_CHOICES, LANGUAGES, REPO_ROOT
+from envs.kuka.grammar import LANGUAGES
+from experiments.harness.core import CHECKPOINT_ROOT, REPO_ROOT
 from experiments.kuka.baselines import KUKA_BASELINES
 
 DEFAULT_EPISODES = 200
@@ -20,11 +21,12 @@ on-the-fly planning, the main rows), or one plan at t = 0 followed to the end.""
 MAIN_MODE = "on_the_fly"
 METHOD_NAMES = {"on_the_fly": "on-the-fly", "one_shot": "one-shot"}
 
-# Instruction phrasings (LANGUAGES, diffplan.language's): Table 2's, the training paraphrases
-# (Table 5's "complex" instructions), the held-out phrasings training never saw.
-LANGUAGE_CHOICES = {**LANGUAGE_CHOICES, "both": ("canonical", "paraphrased")}
+# Instruction phrasings (envs.kuka.grammar.LANGUAGES): Table 2's, the training paraphrases
+# (Table 5's "complex" instructions), the development phrasings (never trained on, chosen on).
+LANGUAGE_CHOICES = {**{language: (language,) for language in LANGUAGES}, "all": LANGUAGES,
+                    "both": ("canonical", "paraphrased")}
 """--language of the Kuka CLIs: one phrasing, canonical and paraphrased ("both", the README's
-Table 5 command), or all three."""
+Table 5 command), or every one ("all")."""
 CARRIES = ("path", "arc")
 """How a block is carried: along the in-painted path, or the expert's arc around the base."""
 NUM_STEPS = 10

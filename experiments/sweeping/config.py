@@ -16,14 +16,16 @@ The Kuka world's: multi (several instructed relations: the multi-constraint colu
 language, carry ("path" | "arc"), reader (a reader directory, e.g. "checkpoints/kuka_reader":
 every instruction restated canonically before the planner reads it, the CLIs' --reader;
 missing: none). language is the
-instructions' phrasing in both worlds: "canonical" | "paraphrased" | "unseen" (held-out
-phrasings training never saw).
+instructions' phrasing in both worlds: "canonical" | "paraphrased" | "unseen" (the grid
+world's held-out phrasings training never saw) | the Kuka world's "development" (phrasings
+training never saw, chosen on).
 """
 from __future__ import annotations
 
 import dataclasses
 import itertools
 
+from diffplan.language import LANGUAGES as GRID_LANGUAGES
 from envs.gridworld.task import PSI_KINDS, check_follow_mark
 from experiments.gridworld import spec as gs
 from experiments.kuka import spec as ks
@@ -57,8 +59,10 @@ TYPES = {"task": str, "setting": str, "checkpoint": str, "modes": str, "num_step
          "follow_mark": float,
          "reader": str}
 CHOICES = {"setting": tuple(gs.SPECS), "noise": ("fresh", "episode"),
-           "replan": tuple(gs.TRIGGER_WORDS), "language": ks.LANGUAGES, "carry": ks.CARRIES,
+           "replan": tuple(gs.TRIGGER_WORDS), "carry": ks.CARRIES,
            "psi": PSI_KINDS, "denoiser": ("learned", "posterior")}
+LANGUAGES = {"gridworld": GRID_LANGUAGES, "kuka": ks.LANGUAGES}
+"""The language key's values in each world (the CLIs' single phrasings)."""
 MINIMUMS = {"episodes": 1, "batch_size": 1, "seed": 0, "num_steps": 1, "warm_num_steps": 1,
             "warm_start_step": 0, "samples": 1}
 
@@ -103,8 +107,9 @@ def _checked(config: dict, index: int, key: str):
     if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
         raise SweepError(f"configuration {index}: {key} must be {kind.__name__}, got "
                          f"{value!r}")
-    if key in CHOICES and value not in CHOICES[key]:
-        raise SweepError(f"configuration {index}: {key} must be one of {CHOICES[key]}, got "
+    choices = LANGUAGES[world(config)] if key == "language" else CHOICES.get(key)
+    if choices is not None and value not in choices:
+        raise SweepError(f"configuration {index}: {key} must be one of {choices}, got "
                          f"{value!r}")
     if key in MINIMUMS and value < MINIMUMS[key]:
         raise SweepError(f"configuration {index}: {key} must be >= {MINIMUMS[key]}, got "
