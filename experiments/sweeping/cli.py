@@ -17,7 +17,7 @@ eta, warm_start_step, warm_num_steps, noise ("fresh" | "episode"), replan ("alwa
 "always", warm_start "on_change"), language, psi ("search" | "follow"), samples (plans drawn
 per re-plan), denoiser ("learned" | "posterior": no checkpoint, exact guesses); batch_size is the slots per device of the re-planning modes' pool. The Kuka
 world: multi (true: the multi-constraint column), language ("canonical" | "paraphrased" |
-"unseen"), carry ("path" | "arc"), reader (a reader directory, e.g. checkpoints/kuka_reader:
+"development"), carry ("path" | "arc"), reader (a reader directory, e.g. checkpoints/kuka_reader:
 instructions restated canonically first, as the CLIs' --reader); batch_size is the episodes per
 jitted call. ``--config FILE`` reads a JSON list of such objects (missing keys
 take the experiment CLIs' defaults, listed below); on the command line, comma-separated values
