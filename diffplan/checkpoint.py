@@ -53,6 +53,8 @@ __all__ = [
     "load_checkpoint",
     "latest_step",
     "all_steps",
+    "SHIPPED_ROOT",
+    "resolve_checkpoint",
     "read_metadata",
     "load_params_for_eval",
     "export_eval_checkpoint",
@@ -169,6 +171,31 @@ def latest_step(directory: str) -> Optional[int]:
     """The newest committed checkpoint step in ``directory``, or None."""
     steps = all_steps(directory)
     return steps[-1] if steps else None
+
+
+SHIPPED_ROOT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                            "checkpoints")
+"""The repository's ``checkpoints/`` directory, beside the package: the shipped models."""
+
+
+def resolve_checkpoint(directory: str) -> str:
+    """Where the checkpoint ``directory`` is: the path as given (relative to the working
+    directory) when it holds a checkpoint; else, for a relative path, the shipped one of that
+    name found beside the package: ``"compile_gridworld"`` or
+    ``"checkpoints/compile_gridworld"`` is ``SHIPPED_ROOT/compile_gridworld`` from any working
+    directory. Raises FileNotFoundError with one line naming every place looked in."""
+    candidates = [directory]
+    if not os.path.isabs(directory):
+        parts = os.path.normpath(directory).split(os.sep)
+        if parts[0] == os.path.basename(SHIPPED_ROOT) and len(parts) > 1:
+            parts = parts[1:]
+        if parts[0] != os.pardir:
+            candidates.append(os.path.join(SHIPPED_ROOT, *parts))
+    for candidate in candidates:
+        if latest_step(candidate) is not None:
+            return candidate
+    looked = " and ".join(repr(os.path.abspath(c)) for c in candidates)
+    raise FileNotFoundError(f"no checkpoint in {directory!r} (looked in {looked})")
 
 
 def _file_digests(step_dir: str) -> dict[str, str]:

@@ -385,14 +385,18 @@ def load_denoiser(directory: str, step: int | None = None) -> LoadedDenoiser:
     The network is the registered class the checkpoint names (``diffplan.models``), which must
     be a Denoiser; nothing the checkpoint names is imported.
 
-    Raises FileNotFoundError (no checkpoint there) or ValueError (unreadable metadata, or a
-    network that is not a registered diffplan Denoiser)."""
-    from diffplan.checkpoint import latest_step, load_params_for_eval
+    ``directory`` is a path, or the name of a shipped checkpoint (``"compile_gridworld"``;
+    ``"checkpoints/compile_gridworld"`` also works outside the repository root): see
+    ``diffplan.checkpoint.resolve_checkpoint``.
+
+    Raises FileNotFoundError (no checkpoint there; one line naming where it looked) or
+    ValueError (unreadable metadata, or a network that is not a registered diffplan
+    Denoiser)."""
+    from diffplan.checkpoint import load_params_for_eval, resolve_checkpoint
     from diffplan.schedule import cosine_schedule
     import diffplan.baselines.goal  # noqa: F401  registers GoalClassifier, a Denoiser
 
-    if latest_step(directory) is None:
-        raise FileNotFoundError(f"no checkpoint in {directory!r}")
+    directory = resolve_checkpoint(directory)
     params, metadata = load_params_for_eval(directory, step=step)  # arrays and JSON only
     spec = models.spec_for_metadata(metadata)
     if not issubclass(spec.model_cls, Denoiser):

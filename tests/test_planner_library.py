@@ -166,12 +166,46 @@ def _readme_example() -> str:
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
-def test_readme_example_runs(monkeypatch, capsys):
-    """The README's example runs as written (from the repository root) and its agents
-    succeed."""
-    monkeypatch.chdir(ROOT)
+def test_readme_example_runs_anywhere_as_the_clis_warm_start_row(monkeypatch, capsys,
+                                                                   tmp_path):
+    """The README's example runs as written from a directory other than the repository's (the
+    shipped checkpoint found by name beside the package), its agents succeed, and it plans as
+    the CLIs' warm-start row: the same PlannerConfig (experiments.gridworld.spec), hence the
+    same denoiser calls per episode as diffplan.rollout with that config on its episodes and
+    keys (the row's re-planning trigger written out by hand)."""
+    from diffplan.rollouts import rollout
+    from experiments.gridworld.spec import SPECS
+
+    monkeypatch.chdir(tmp_path)
     namespace = {}
     exec(compile(_readme_example(), "README example", "exec"), namespace)
     out = capsys.readouterr().out
     assert "success" in out
     assert float(np.mean(np.asarray(namespace["success"]))) >= 0.75
+    config = SPECS["p_mo2g"].planner_config("warm_start")
+    assert namespace["planner"].config == config
+    task, generate, keys = namespace["task"], namespace["generate"], namespace["keys"]
+    episodes = jax.vmap(lambda k: generate(jax.random.fold_in(k, 0)))(keys)
+    planner_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys)
+    cli_row = jax.jit(lambda p, k, e: rollout(task, p, k, e))(
+        Planner(namespace["den"], config), planner_keys, episodes)
+    np.testing.assert_array_equal(np.asarray(namespace["calls"]),
+                                  np.asarray(cli_row.denoiser_calls))
+    assert float(np.mean(np.asarray(namespace["calls"]))) < 20  # not PlannerConfig()'s ~32
+
+
+def test_shipped_checkpoints_are_found_by_name_from_anywhere(monkeypatch, tmp_path):
+    """load_denoiser resolves a shipped checkpoint's name, or checkpoints/<name>, beside the
+    package from any working directory; a missing one is one line naming where it looked."""
+    from diffplan.checkpoint import SHIPPED_ROOT, resolve_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("compile_gridworld", "checkpoints/compile_gridworld"):
+        assert resolve_checkpoint(name) == os.path.join(SHIPPED_ROOT, "compile_gridworld")
+    assert resolve_checkpoint(SHIPPED) == SHIPPED
+    with pytest.raises(FileNotFoundError) as e:
+        diffplan.load_denoiser("checkpoints/no_such_model")
+    message = str(e.value)
+    assert len(message.splitlines()) == 1
+    assert str(tmp_path / "checkpoints" / "no_such_model") in message
+    assert os.path.join(SHIPPED_ROOT, "no_such_model") in message
