@@ -25,11 +25,11 @@ ALL_SPLITS = {**{f"grid/{s}": grid_grammar.SPLITS[s] for s in SETTINGS},
 @pytest.mark.parametrize("name", sorted(ALL_SPLITS))
 def test_a_third_held_out_made_of_training_words(name):
     split = ALL_SPLITS[name]
-    n = len(split.templates) - len(split.extra)  # the phrasings evaluation rows draw
+    n = len(split.templates) - len(split.extra) - len(split.sealed)  # as before the sealed set
     assert len(split.unseen) == n // 3 and 0 not in split.unseen
     training_words = language.template_words([split.templates[i] for i in split.training],
                                              split.slots)
-    for i in split.unseen:
+    for i in split.unseen + split.sealed:
         assert language.template_words([split.templates[i]], split.slots) <= training_words
 
 
@@ -71,8 +71,8 @@ def test_pools(name):
     assert split.pool("canonical").tolist() == [0]
     paraphrased = split.pool("paraphrased").tolist()
     assert 0 not in paraphrased and not set(paraphrased) & set(split.unseen)
-    assert sorted(paraphrased + [0] + list(split.unseen) + list(split.extra)) == \
-        list(range(len(split.templates)))
+    assert sorted(paraphrased + [0] + list(split.unseen) + list(split.extra)
+                  + list(split.sealed)) == list(range(len(split.templates)))
     assert split.pool(split.unseen_name).tolist() == list(split.unseen)
     mixed = split.pool(language.TRAINING)
     assert (mixed == 0).mean() == 0.5 and not set(mixed.tolist()) & set(split.unseen)

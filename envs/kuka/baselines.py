@@ -79,9 +79,9 @@ def split_sentences(tokens):
 
 def _sentence_meaning(row):
     """(top token, bottom token, tower bool) of one sentence: the slots of whichever of the
-    grammar's relation phrasings it is (held-out ones included: the parser is written by hand,
-    not learned), the tower sentence's flag; for any other sentence, its first two colour
-    words as (top, bottom) (0 where absent)."""
+    grammar's relation phrasings it is (development and sealed held-out ones included: the
+    parser is written by hand, not learned), the tower sentence's flag; for any other
+    sentence, its first two colour words as (top, bottom) (0 where absent)."""
     index, slots = language.match_template(row, grammar.RELATIONS)
     tower_index, _ = language.match_template(row, grammar.TOWERS)
     is_colour = grammar.is_block_token(row)

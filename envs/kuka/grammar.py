@@ -50,14 +50,35 @@ RELATION_TEMPLATES: tuple[str, ...] = (
     "Move the {bottom} block under the {top} block.",
     "The {top} block should be above the {bottom} block.",
     "Place the {top} block onto the {bottom} block.",
+    # SEALED HELD-OUT PHRASINGS (19-28, the language "heldout"; issue 52). Written, with new
+    # frames and word orders (four open with their preposition), from the training phrasings'
+    # words only, each at least two words from every training, development and extra phrasing,
+    # and committed before any model was evaluated on them. No training batch may draw them
+    # (no training language's pool holds them) and nothing is ever chosen on them: a model is
+    # measured on them once, at the end of the work that produced it, and the result reported
+    # as it comes out. Do not edit, reorder or tune them.
+    "On the {bottom} block put the {top} block.",
+    "Under the {top} block put the {bottom} block.",
+    "Onto the {bottom} block move the {top} block.",
+    "Above the {bottom} block should be the {top} block.",
+    "Place onto the {bottom} block the {top} block.",
+    "Put under the {top} block the {bottom} block.",
+    "The {top} block should be put on the {bottom} block.",
+    "The {bottom} block should be set under the {top} block.",
+    "Set it so that the {top} block rests on the {bottom} block.",
+    "Place it so that the {bottom} block goes under the {top} block.",
 )
 """One relation "top on bottom"; 0 is canonical, 1-7 the training paraphrases, 8-11 the
-development phrasings, 12-18 training-only extras (:data:`EXTRA`)."""
+development phrasings, 12-18 training-only extras (:data:`EXTRA`), 19-28 the sealed held-out
+phrasings (:data:`HELDOUT`)."""
 INVERTED = tuple(k for k, t in enumerate(RELATION_TEMPLATES) if t.index("{bottom}") < t.index(
     "{top}"))
 """The relation phrasings that name the lower block first (2, 4, 7, 9, 11, 12, 13, 14, 16 of
 the first 19: the preposition inverted, "Put the {bottom} block below the {top} block.")."""
 EXTRA = tuple(range(12, 19))
+HELDOUT = tuple(range(19, 29))
+"""The sealed held-out relation phrasings (drawn only by the language ``heldout``): never
+trained on, never chosen on (see the comment above them)."""
 """Relation phrasings only the ``broad`` training language draws (``diffplan.language.BROAD``):
 the ``paraphrased`` and ``development`` evaluation rows never contain them, and they add no word, so
 the vocabulary (and every checkpoint's) is the same with or without them."""
@@ -70,21 +91,29 @@ TOWER_TEMPLATES: tuple[str, ...] = (
     # development phrasings (4-5): never trained on, but chosen on
     "Build one tower with all four blocks.",
     "Make a tower of the four blocks.",
+    # SEALED HELD-OUT PHRASINGS (6-8, the language "heldout"): as the sealed relation
+    # phrasings above, never trained on, nothing ever chosen on them; do not edit them.
+    "Into one tower stack all four blocks.",
+    "With all four blocks build a single tower.",
+    "Pile up all four blocks into a single tower.",
 )
 """The tower sentence of single-constraint stacking; 0 is canonical, 1-3 the training
-paraphrases, 4-5 the development phrasings."""
+paraphrases, 4-5 the development phrasings, 6-8 the sealed held-out phrasings
+(:data:`HELDOUT_TOWERS`)."""
+HELDOUT_TOWERS = (6, 7, 8)
 
 RELATION_SPLIT = language.TemplateSplit(RELATION_TEMPLATES, (8, 9, 10, 11), SLOTS, EXTRA,
-                                        unseen_name=language.DEVELOPMENT)
-TOWER_SPLIT = language.TemplateSplit(TOWER_TEMPLATES, (4, 5), SLOTS,
+                                        sealed=HELDOUT, unseen_name=language.DEVELOPMENT)
+TOWER_SPLIT = language.TemplateSplit(TOWER_TEMPLATES, (4, 5), SLOTS, sealed=HELDOUT_TOWERS,
                                      unseen_name=language.DEVELOPMENT)
-"""A third of each sentence kind's phrasings is kept out of training as development phrasings
-(every word of them occurs in a training phrasing, so the vocabulary is that of the training
-phrasings)."""
+"""Of each sentence kind: development phrasings (kept out of training, chosen on) and sealed
+held-out phrasings (kept out of training, never chosen on); every word of them occurs in a
+training phrasing, so the vocabulary is that of the training phrasings."""
 LANGUAGES = RELATION_SPLIT.languages
 """canonical: every sentence in its template 0; paraphrased: every sentence in a uniformly drawn
 training paraphrase (never template 0); development: every sentence in a uniformly drawn
-development phrasing (:data:`RELATION_SPLIT`, :data:`TOWER_SPLIT`)."""
+development phrasing; heldout: every sentence in a uniformly drawn sealed held-out phrasing
+(:data:`RELATION_SPLIT`, :data:`TOWER_SPLIT`)."""
 RENAMED = {language.UNSEEN: language.DEVELOPMENT}
 """Kuka language names recorded before they were renamed (older metadata, sweep files and
 JSON): "unseen" drew relation templates 8-11 and tower templates 4-5, the development
@@ -153,9 +182,9 @@ def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canoni
 
     constraints: int32 (MAX_RELATIONS, 2) (top, bottom) block indices, -1 rows are absent;
     tower_sentence: bool () starts with the tower sentence; phrasing (static, LANGUAGES): each
-    sentence in its canonical phrasing, or in one drawn uniformly from the training paraphrases
-    or from the development phrasings; or (training only) "broad": the training paraphrases
-    and the extras (:data:`EXTRA`).
+    sentence in its canonical phrasing, or in one drawn uniformly from the training
+    paraphrases, the development phrasings or the sealed held-out phrasings; or (training
+    only) "broad": the training paraphrases and the extras (:data:`EXTRA`).
     """
     check_phrasing(phrasing)
     k_tower, k_rel = jax.random.split(key)

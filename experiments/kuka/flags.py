@@ -36,8 +36,9 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
                    help="instruction phrasing: 'canonical' (Table 2, default), 'paraphrased' "
                         "with inverted prepositions (Table 5, the training paraphrases), "
                         "'development' (phrasings training never saw, made of its words, but "
-                        "chosen on: development numbers), 'both' (canonical and paraphrased: "
-                        "every row for each) or 'all' (every one)")
+                        "chosen on: development numbers), 'heldout' (sealed held-out phrasings "
+                        "in new frames: never trained on, never chosen on), 'both' (canonical "
+                        "and paraphrased: every row for each) or 'all' (every one)")
     p.add_argument("--modes", default=",".join(MODES),
                    help=f"comma-separated planning modes (default {','.join(MODES)}); the "
                         "first of them gives the main row")

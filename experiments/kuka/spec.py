@@ -22,7 +22,8 @@ MAIN_MODE = "on_the_fly"
 METHOD_NAMES = {"on_the_fly": "on-the-fly", "one_shot": "one-shot"}
 
 # Instruction phrasings (envs.kuka.grammar.LANGUAGES): Table 2's, the training paraphrases
-# (Table 5's "complex" instructions), the development phrasings (never trained on, chosen on).
+# (Table 5's "complex" instructions), the development phrasings (never trained on, chosen on),
+# the sealed held-out phrasings (never trained on, never chosen on).
 LANGUAGE_CHOICES = {**{language: (language,) for language in LANGUAGES}, "all": LANGUAGES,
                     "both": ("canonical", "paraphrased")}
 """--language of the Kuka CLIs: one phrasing, canonical and paraphrased ("both", the README's
