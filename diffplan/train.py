@@ -320,8 +320,8 @@ def fit(step_fn: Callable, init_fn: Callable, *, steps: int, seed: int, out_dir:
     writer = _tensorboard(out_dir) if tensorboard else None
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=steps, initial=start, desc=desc, dynamic_ncols=True)
+        from diffplan.progress import bar as progress_bar
+        bar = progress_bar(total=steps, initial=start, desc=desc, dynamic_ncols=True)
     t0 = time.perf_counter()
     t_last, step_last = t0, start
     window, record = _Window(), None

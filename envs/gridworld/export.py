@@ -135,10 +135,10 @@ def export_episodes(config: GridConfig, n: int, seed: int, *, chunk_size: int = 
     chunk = min(chunk_size, 1 << (n - 1).bit_length())
     key = jax.random.PRNGKey(seed)
     parts = []
-    from tqdm import tqdm
+    from diffplan.progress import bar as progress_bar
 
-    with tqdm(total=n, unit="ep", desc=f"{config.setting} episodes", disable=not progress,
-              file=sys.stderr) as bar:
+    with progress_bar(total=n, unit="ep", desc=f"{config.setting} episodes",
+                      disable=not progress, file=sys.stderr) as bar:
         for start in range(0, n, chunk):
             episodes, visible0 = generate_chunk(key, jnp.int32(start), config, chunk)
             count = min(chunk, n - start)

@@ -1,10 +1,45 @@
 """What the throughput benchmarks (bench_gridworld, bench_kuka, bench_unet) share: list-valued
-flags, the --json / --no-cache flags and their checks, timing loops, and the result file."""
+flags, the --json / --no-cache flags and their checks, timing loops, the result file, and the
+legends printed under every benchmark's table (LEGENDS)."""
 from __future__ import annotations
 
 import argparse
 import os
 import time
+
+from experiments.harness.tables import legend
+
+FIRST_CALL = ("the first call's seconds: compilation (or its load from the compilation cache) and "
+              "one run")
+TIMED = "median over the timed calls, compilation excluded"
+LEGENDS = {
+    "gridworld": (("kind", "what is timed"), ("batch", "episodes per call"),
+                  ("steps/call", "env steps per episode per call"),
+                  ("per second", f"units (unit column) per second, {TIMED}"),
+                  ("best", "the fastest call's rate"), ("target", "the rate to meet"),
+                  ("ratio", "per second / target"), ("compile s", FIRST_CALL)),
+    "unet": (("params", "parameters, millions"), ("ms", f"milliseconds per call, {TIMED}"),
+             ("best ms", "the fastest call"), ("GFLOP", "per call, from XLA's cost analysis"),
+             ("GFLOP/s", "GFLOP / ms"), ("% peak", "of the matmul just before each call"),
+             ("ms/plan", "sampler call ms / batch"), ("compile s", FIRST_CALL)),
+    "kuka": (("steps/s", f"env steps per second (batch x steps per call / seconds), {TIMED}"),
+             ("best steps/s", "the fastest call's"), ("s/call", f"seconds per call, {TIMED}"),
+             ("first s", FIRST_CALL)),
+    "planner": (("batch", "episodes per call"),
+                ("episodes/s", "episodes per second, compilation excluded"),
+                ("calls/s", "denoiser calls per second"),
+                ("compile s", "lowering + XLA compilation, the persistent cache off"),
+                ("peak GB", "the process's peak resident memory up to this row"),
+                ("jitted/this", "the jitted row's episodes/s over this row's (bound: this row's "
+                                "share of the ceiling)")),
+    "train": (("step", "training step of the evaluation"),
+              ("train min", "training wall minutes so far, compilation included, evaluations "
+                            "excluded"),
+              ("SR, SR_ord, F1 / column SRs", "on the validation episodes (seed 1000), %")),
+    "train_split": (("ms", f"milliseconds per call, {TIMED}"), ("% step", "of the full step"),
+                    ("compile s", FIRST_CALL)),
+}
+"""What each benchmark table's columns mean (experiments.harness.tables.legend)."""
 
 
 def typed_list(type_):

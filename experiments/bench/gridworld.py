@@ -154,7 +154,7 @@ def format_table(rows) -> str:
             f"{r['kind']:<17}{r['setting']:<8}{r['batch']:>6}{r.get('steps_per_call', '-'):>11}"
             f"{r['per_second']:>13,.0f}{r['best_per_second']:>13,.0f}  {unit:<9}{target:>11}"
             f"{ratio:>7}{r['compile_seconds']:>11.1f}")
-    return "\n".join(lines)
+    return "\n".join(lines + [bc.legend(bc.LEGENDS["gridworld"])])
 
 
 def _settings_list(text: str) -> list[str]:

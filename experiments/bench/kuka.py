@@ -162,7 +162,7 @@ def main(argv=None) -> int:
     device = jax.devices()[0]
     print(f"jax {jax.__version__}, mujoco {mujoco.__version__} on {len(jax.devices())} x "
           f"{device.platform}, {os.cpu_count()} CPU cores")
-    print(format_table(rows, TABLE_COLUMNS))
+    print(format_table(rows, TABLE_COLUMNS, bc.LEGENDS["kuka"]))
     for r in rows:
         if r["kind"] == "pick_and_place":
             print(f"{r['method']}: {r['seconds_per_placement']:.2f} s per vmapped pick-and-place "

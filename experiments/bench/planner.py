@@ -42,7 +42,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.bench.common import LEGENDS
 from experiments.bench.eager import EAGER_FORWARDS, eager_rollout
+from experiments.harness.tables import legend
+
+PLANNER_ROWS = (("jitted", "jax.jit(diffplan.rollout), one call"),
+                ("eager-jit / eager-op", "a Python loop over moves and steps, the UNet forward "
+                                         "jitted / op by op"),
+                ("bound", "the bare jitted UNet forward: the ceiling"))
+"""What the rows are (the table's legend)."""
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -215,6 +223,7 @@ def main(argv=None) -> int:
         rows += group
         print("\n".join(format_table(group).splitlines()[2:]), file=sys.stderr)
     print(format_table(rows))
+    print(legend(LEGENDS["planner"]) + "\n" + legend(PLANNER_ROWS, "rows"))
     result = {"experiment": "bench_planner", "episodes": max(sizes), "seed": args.seed,
               "num_steps": args.num_steps, "chunk": args.chunk,
               "eager_forwards": forwards, "checkpoint": os.path.relpath(args.checkpoint, REPO),

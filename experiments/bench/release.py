@@ -136,6 +136,8 @@ def main(argv=None) -> int:
     for r in rows:
         extra = f"  ({r['params'] / 1e6:.1f}M parameters)" if "params" in r else ""
         print(f"{r['method']:<66} {r['seconds']:>10.3f}{extra}")
+    print("legend: seconds = the median of timed calls after a warm-up (no compilation), per "
+          "call or per episode as the measure says; a plan's = its forward x its steps")
     print(f"release / ours per episode: {release_ep / ours_ep:.0f}x")
     result = {"experiment": "bench_release", "episodes": BATCH, "seed": 3000, "rows": rows,
               "release_over_ours_per_episode": release_ep / ours_ep,

@@ -24,6 +24,7 @@ import argparse
 import sys
 
 from experiments.bench import train_split as split_mod, train_worlds as bw
+from experiments.bench.common import LEGENDS
 from experiments.harness import cli, core as harness, tables
 from experiments.harness.recipes import MODEL_SIZES
 
@@ -175,7 +176,7 @@ def _print_table(world, evaluations) -> None:
                     for n in evaluations[0]["SR_columns"]]
     else:
         columns += [("SR_ordered", "{:>7.2f}", "SR_ord"), ("path_f1", "{:>6.1f}", "F1")]
-    print(tables.format_table(rows, columns))
+    print(tables.format_table(rows, columns, LEGENDS["train"]))
 
 
 def main(argv=None) -> dict:

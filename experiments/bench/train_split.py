@@ -17,6 +17,7 @@ import sys
 import time
 
 from experiments.bench import train_worlds as bw
+from experiments.bench.common import LEGENDS
 from experiments.harness import core as harness, tables
 
 SYNC_EVERY = 4
@@ -118,11 +119,12 @@ def _sustained(world, model_size: str, batch_size, seconds: float, window: float
     """Steps/s of the real training loop over `seconds` after its first time mark, in windows."""
     import tempfile
 
-    from tqdm import tqdm
+    from experiments.harness.progress import bar as progress_bar
 
     marks = []
-    bar = tqdm(total=round(seconds), desc=f"{world.name} sustained training", unit="s",
-               disable=not progress, file=sys.stderr, leave=False, dynamic_ncols=True)
+    bar = progress_bar(total=round(seconds), desc=f"{world.name} sustained training",
+                       unit="s", disable=not progress, file=sys.stderr, leave=False,
+                       dynamic_ncols=True)
 
     def callback(step, record):
         marks.append((step, time.perf_counter()))
@@ -155,11 +157,12 @@ def _sustained(world, model_size: str, batch_size, seconds: float, window: float
 
 def measure(world, args) -> dict:
     """The split of world's step (args: --model-size, --batch-size, --split-*, --no-progress)."""
-    from tqdm import tqdm
+    from experiments.harness.progress import bar as progress_bar
 
     progress = not args.no_progress
-    with tqdm(total=4, desc=f"{world.name} step parts (compile, time)", unit="part",
-              disable=not progress, file=sys.stderr, leave=False, dynamic_ncols=True) as bar:
+    with progress_bar(total=4, desc=f"{world.name} step parts (compile, time)", unit="part",
+                      disable=not progress, file=sys.stderr, leave=False,
+                      dynamic_ncols=True) as bar:
         ms, compile_s, batch = _parts(world, args.model_size, args.batch_size,
                                       args.split_repeats, bar, args.set)
     full = ms["full step"]
@@ -184,7 +187,7 @@ def format_split(split: dict) -> str:
         f"time split of a training step ({split['world']}, {split['model_size']} model, batch "
         f"{split['batch_size']}; median of {split['repeats']} calls after warm-up; "
         f"{split['machine']}):",
-        tables.format_table(split["parts"], columns),
+        tables.format_table(split["parts"], columns, LEGENDS["train_split"]),
         f"full step: {split['steps_per_second']:.2f} steps/s, "
         f"{split['examples_per_second']:.1f} examples/s",
         f"training loop over {sus['seconds']:.1f} s: {sus['steps']} steps, "

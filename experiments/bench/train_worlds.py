@@ -174,7 +174,8 @@ def kuka_evaluator(episodes: int, mode: str, batch: int, progress: bool):
     """evaluate(denoiser) -> {"SR": pooled strict SR, "SR_min": the lowest column's,
     "SR_columns": {column: strict SR}} on validation episodes of each Table 2 column."""
     import numpy as np
-    from tqdm import tqdm
+
+    from experiments.harness.progress import bar as progress_bar
 
     from diffplan.planner import Planner, PlannerConfig
     from envs.kuka.config import COLUMNS
@@ -189,8 +190,9 @@ def kuka_evaluator(episodes: int, mode: str, batch: int, progress: bool):
     def evaluate(denoiser) -> dict:
         planner = Planner(denoiser, PlannerConfig(mode=mode, num_steps=ks.NUM_STEPS))
         columns, held, total = {}, 0, 0
-        with tqdm(total=episodes * len(eps), desc=f"kuka {mode} (seed {seed})", unit="ep",
-                  disable=not progress, file=sys.stderr, leave=False, dynamic_ncols=True) as bar:
+        with progress_bar(total=episodes * len(eps), desc=f"kuka {mode} (seed {seed})",
+                          unit="ep", disable=not progress, file=sys.stderr, leave=False,
+                          dynamic_ncols=True) as bar:
             for name, column in eps.items():
                 final = ke.run_planner(task, planner, column, seed, batch, bar, run=run)
                 strict, _ = ke.constraint_success(column, final)

@@ -133,7 +133,7 @@ def format_table(rows) -> str:
                      f"{f(r['gflop'], '9.2f')}{f(r['gflops'], '9.1f')}"
                      f"{f(r['percent_of_peak'], '8.1f')}{f(r.get('ms_per_plan'), '9.2f')}"
                      f"{f(r['compile_seconds'], '10.1f')}")
-    return "\n".join(lines)
+    return "\n".join(lines + [bc.legend(bc.LEGENDS["unet"])])
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -35,6 +35,11 @@ VARIANTS = (
     ("+ on the fly", dict(grid_repr="embed", goal_channel=True), "on_the_fly"),
 )
 SETTINGS = ("mo1g", "p_mo2g")
+VARIANT_LEGEND = (("baseline", "class-id grid, no goal channel g, one_shot"),
+                  ("+ grid repr", "cell embeddings, no g, one_shot"),
+                  ("+ g", "+ the goal-estimate channel, one_shot"),
+                  ("+ on the fly", "+ on_the_fly re-planning before every move"))
+"""What each variant's row is (its name follows the setting), printed under the table."""
 
 
 def build_parser():
@@ -119,7 +124,7 @@ def main(argv=None):
                 rows.append({**row, "method": f"{setting} {row['method']}", "setting": setting})
     result = {"experiment": "ablation_compile", "episodes": args.episodes, "seed": args.seed,
               "rows": rows}
-    print(ge.format_table(rows))
+    print(ge.format_table(rows, VARIANT_LEGEND))
     if args.json:
         cli.write_json(args.json, result)
     return result

@@ -19,7 +19,7 @@ import numpy as np
 from experiments.gridworld.spec import METHOD_NAMES
 from experiments.harness.core import (ROLLOUT_STREAM, concat_trees, per_seed_values, planner_keys,
                                       rollout_fn, seeded_episodes)
-from experiments.harness.tables import format_intervals as _intervals, format_table as _table
+from experiments.gridworld.tables import format_intervals, format_table
 from experiments.harness.intervals import rate_interval
 
 __all__ = ["ROLLOUT_STREAM", "concat_trees", "eval_episodes", "evaluate_mode", "metrics_row",
@@ -85,17 +85,16 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
     slowest episode ends). Episode i always uses the key fold_in(fold_in(PRNGKey(seed),
     ROLLOUT_STREAM), i), so nothing depends on the batching.
     """
-    from tqdm import tqdm
-
     from diffplan.planner import Planner
-    from experiments.harness.progress import PARTS, RELAY
+    from experiments.harness.progress import PARTS, RELAY, bar as progress_bar
 
     n = int(np.shape(episodes.tokens)[0])
     planner = Planner(denoiser, spec.planner_config(mode, record_plans=record_plans))
     stream = mode in STREAM_MODES and not record_plans
     start = time.time()
-    bar = tqdm(total=n, desc=f"{spec.setting} {METHOD_NAMES[mode]} (seed {seed})", unit="ep",
-               disable=not progress, file=sys.stderr, leave=True, dynamic_ncols=True)
+    bar = progress_bar(total=n, desc=f"{spec.setting} {METHOD_NAMES[mode]} (seed {seed})",
+                       unit="ep", disable=not progress, file=sys.stderr, leave=True,
+                       dynamic_ncols=True)
     per_call = min(n, 4 * batch_size) if stream else batch_size
     if stream:
         run = rollout_fn(task, min(batch_size, per_call))
@@ -176,25 +175,6 @@ def pooled_row(method, outs: dict, episodes_by_seed: dict, has_reference: bool,
             {seed: row_fn(method, r, episodes_by_seed[seed], t, has_reference)
              for seed, (r, t) in outs.items()}, PER_SEED_FIELDS)
     return row, rollout
-
-
-TABLE_COLUMNS = (("method", "{:<22}", "method"), ("SR", "{:>7.2f}", "SR"),
-                 ("SR_ordered", "{:>7.2f}", "SR_ord"), ("GD", "{:>6.3f}", "GD"),
-                 ("path_precision", "{:>7.2f}", "Prec"), ("path_recall", "{:>7.2f}", "Rec"),
-                 ("path_f1", "{:>7.2f}", "F1"), ("SPL", "{:>6.3f}", "SPL"),
-                 ("plan_f1", "{:>7.2f}", "planF1"),
-                 ("denoiser_calls_per_episode", "{:>8.1f}", "calls"),
-                 ("fallback_percent", "{:>6.2f}", "fb%"), ("seconds", "{:>8.1f}", "sec"))
-
-
-def format_table(rows) -> str:
-    """A plain-text table of result rows (missing values shown as '-')."""
-    return _table(rows, TABLE_COLUMNS)
-
-
-def format_intervals(rows, seeds) -> str:
-    """Per-seed SR and the pooled 95% intervals, one line per row."""
-    return _intervals(rows, seeds, 22)
 
 
 def contract_arrays(episodes, grid_config) -> dict:

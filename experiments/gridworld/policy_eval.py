@@ -28,7 +28,7 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
     """Runs a LoadedPolicy on the episodes (N) in calls of batch_size; episode i uses the key
     ``harness.planner_keys(seed, [i])``, as our planner's evaluation does.
     Returns (Rollout of numpy arrays, seconds)."""
-    from tqdm import tqdm
+    from experiments.harness.progress import bar as progress_bar
 
     n = int(np.shape(episodes.tokens)[0])
     run = policy_runner(task, policy.act_fn, policy.calls_per_move, policy.plan_channels,
@@ -36,8 +36,8 @@ def evaluate_policy(policy, task, episodes, seed: int, batch_size: int, progress
     per_call = min(n, batch_size)
     outs = []
     start = time.time()
-    with tqdm(total=n, desc=desc, unit="ep", disable=not progress, file=sys.stderr,
-              dynamic_ncols=True) as bar:
+    with progress_bar(total=n, desc=desc, unit="ep", disable=not progress, file=sys.stderr,
+                      dynamic_ncols=True) as bar:
         for lo in range(0, n, per_call):
             idx = np.arange(lo, min(n, lo + per_call))
             chunk = jax.tree.map(lambda x: x[idx], episodes)
@@ -67,11 +67,15 @@ def _row_fn(policy):
 
 def policy_rows(policies: Sequence[LoadedPolicy], setting: str, seeds: tuple[int, ...],
                 episodes: int, batch_size: int, progress: bool, *,
-                episodes_by_seed: dict | None = None) -> list[dict]:
+                episodes_by_seed: dict | None = None, keep: dict | None = None) -> list[dict]:
     """One metrics row per policy (its ``method``) on ``episodes`` evaluation episodes of each
     seed (pooled; with several seeds also SR_ci95 and per_seed values, as the grid-world
     experiments write them; ``gridworld.eval.pooled_row``). episodes_by_seed: {seed: Episode
-    batch} already generated with eval_episodes (default: generated here)."""
+    batch} already generated with eval_episodes (default: generated here). keep: {seed: bool
+    (N,)}, the episodes the rows count (all are run, so every episode keeps its key; the
+    planner's rows leave out the same ones: 1O1G worlds its training saw)."""
+    from experiments.gridworld.eval import select
+
     grid_config = make_config(setting)
     task = GridTask(grid_config)
     per_seed = {seed: (episodes_by_seed or {}).get(seed) for seed in seeds}
@@ -82,7 +86,11 @@ def policy_rows(policies: Sequence[LoadedPolicy], setting: str, seeds: tuple[int
         outs = {seed: evaluate_policy(policy, task, eps, seed, batch_size, progress,
                                       f"{setting} {policy.method} (seed {seed})")
                 for seed, eps in per_seed.items()}
-        row, _ = pooled_row(policy.method, outs, per_seed, grid_config.has_reference,
+        counted = per_seed
+        if keep is not None:
+            outs = {seed: (select(r, keep[seed]), t) for seed, (r, t) in outs.items()}
+            counted = {seed: select(eps, keep[seed]) for seed, eps in per_seed.items()}
+        row, _ = pooled_row(policy.method, outs, counted, grid_config.has_reference,
                             _row_fn(policy))
         rows.append(row)
     return rows

@@ -40,7 +40,8 @@ def compiled_planners(task, denoiser, configs: dict, episodes, batch: int, bar=N
     """{name: (Planner, its compiled rollout)} for each PlannerConfig of configs: the
     rollout_fn(task) programs for batches of ``batch`` episodes shaped like ``episodes`` (a
     leading axis), compiled at once (compile_together); each is called as rollout_fn's.
-    bar: a tqdm bar that says "compiling" meanwhile (a minute or more for MJX programs)."""
+    bar: a progress bar (experiments.harness.progress.bar) that says "compiling" meanwhile (a
+    minute or more for MJX programs) and until its next update."""
     from diffplan.planner import Planner
     from experiments.harness.core import planner_keys, rollout_fn
 
@@ -50,8 +51,6 @@ def compiled_planners(task, denoiser, configs: dict, episodes, batch: int, bar=N
     keys = planner_keys(0, np.arange(batch))
     args = [(p, keys, chunk, 0) for p in planners.values()]
     if bar is not None:
-        bar.set_postfix_str(f"compiling {len(args)} planning program(s)")
+        bar.compiling(f"compiling {len(args)} planning program(s)")
     runs = compile_together(rollout_fn(task), args)
-    if bar is not None:
-        bar.set_postfix_str("")
     return {name: (p, r) for (name, p), r in zip(planners.items(), runs)}

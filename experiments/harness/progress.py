@@ -5,11 +5,17 @@ pool reports its number of retired episodes after every move through ``jax.debug
 with an integer token naming the bar. The relay is one fixed object, so the compiled function
 is reused from one evaluation to the next; bars are registered per evaluation with
 :meth:`Relay.attach` and detached when it ends (the only mutable state: which bars are open).
+A report means the program runs: a ``diffplan.progress.CompilingBar`` (``bar``) stops saying
+"compiling" at the first one and times its ETA from there.
 """
 from __future__ import annotations
 
 import itertools
 import threading
+
+from diffplan.progress import CompilingBar, bar
+
+__all__ = ["PARTS", "RELAY", "Relay", "CompilingBar", "bar"]
 
 
 PARTS = 64
@@ -46,6 +52,8 @@ class Relay:
             bar, offset, counts = entry
             counts[part] = max(counts.get(part, 0), int(count))
             value = offset + sum(counts.values())
+        if isinstance(bar, CompilingBar):
+            bar.running()
         if value > bar.n:
             bar.update(value - bar.n)
 

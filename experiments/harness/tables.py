@@ -1,23 +1,42 @@
-"""Result tables as text, shared by every experiment and benchmark CLI: a row table, the
-per-seed rates with their pooled 95% intervals, and the per-phrasing rates of rows that mix
-phrasings. Pure functions of result rows (the dicts the JSON files hold)."""
+"""Result tables as text, shared by every experiment and benchmark CLI: a row table that ends
+with a legend of its columns, the per-seed rates with their pooled 95% intervals, and the
+per-phrasing rates of rows that mix phrasings. Pure functions of result rows (the dicts the
+JSON files hold)."""
 from __future__ import annotations
 
+import textwrap
 
-def format_table(rows, columns) -> str:
-    """A plain-text table of result rows; columns: (key, format, header) triples, the first
-    left-aligned (widened to its longest value); missing values shown as '-'."""
-    widths = [len(fmt.format(0 if i else "")) for i, (_, fmt, _) in enumerate(columns)]
+LEGEND_WIDTH = 100
+"""Columns of a legend line (it wraps, continuation lines indented)."""
+
+
+def legend(entries, title: str = "legend") -> str:
+    """A legend under a table: "legend: name = meaning; ..." for each (name, meaning) pair,
+    wrapped at LEGEND_WIDTH columns; '' for no entries."""
+    text = "; ".join(f"{name} = {meaning}" for name, meaning in entries)
+    return "\n".join(textwrap.wrap(f"{title}: {text}", LEGEND_WIDTH, subsequent_indent="  ",
+                                   break_on_hyphens=False)) if text else ""
+
+
+def format_table(rows, columns, legend_entries=(), row_names=()) -> str:
+    """A plain-text table of result rows; columns: (key, format, header) triples or (key,
+    format, header, meaning) quadruples, the first left-aligned (widened to its longest value);
+    missing values shown as '-'. It ends with its legend: the columns' meanings, then
+    legend_entries' (name, meaning) pairs (e.g. "Prec/Rec/F1"), and a "rows:" line of
+    row_names' pairs (what the row names mean, e.g. the flag value of each)."""
+    widths = [len(c[1].format(0 if i else "")) for i, c in enumerate(columns)]
     first = columns[0][0]
     widths[0] = max([widths[0]] + [len(str(row.get(first, ""))) for row in rows])
-    head = " ".join(h.rjust(w) if i else h.ljust(w)
-                    for i, ((_, _, h), w) in enumerate(zip(columns, widths)))
+    head = " ".join(c[2].rjust(w) if i else c[2].ljust(w)
+                    for i, (c, w) in enumerate(zip(columns, widths)))
     lines = [head, "-" * len(head)]
     for row in rows:
         cells = [str(row.get(first, "-")).ljust(widths[0])]
-        cells += [fmt.format(row[k]) if row.get(k) is not None else "-".rjust(w)
-                  for (k, fmt, _), w in zip(columns[1:], widths[1:])]
+        cells += [c[1].format(row[c[0]]) if row.get(c[0]) is not None else "-".rjust(w)
+                  for c, w in zip(columns[1:], widths[1:])]
         lines.append(" ".join(cells))
+    entries = [(c[2], c[3]) for c in columns if len(c) > 3 and c[3]] + list(legend_entries)
+    lines += [text for text in (legend(entries), legend(row_names, "rows")) if text]
     return "\n".join(lines)
 
 

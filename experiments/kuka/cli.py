@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from experiments.harness import cli, compiling, core as harness, tables
-from experiments.kuka import eval as ke, spec as ks
+from experiments.kuka import eval as ke, spec as ks, tables as kt
 from experiments.kuka.flags import build_parser, check_args
 
 
@@ -96,6 +96,7 @@ def _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar):
         finals.update(out[1])
     for name in args.baselines:
         method, act = _baseline_actor(args, name, bar)
+        bar.compiling(f"compiling {method}")  # its program compiles in its first batch
         out = _columns(args, seeds, specs, episodes, act, lambda spec: ks.label(
             None, spec.multi, spec.language, method), method, None)
         rows.update(out[0])
@@ -120,7 +121,7 @@ def _print_summary(kind, args, seeds, checkpoint, all_rows) -> None:
              f"steps per plan)" if checkpoint else "")
           + f"; success on the physical poses after {args.settle:g} s at rest (SR strict, "
             "contract 4; SR_Diff Diffuser's check; SPL over placements)")
-    print(ke.format_table(all_rows))
+    print(kt.format_table(all_rows))
     if phrasings := tables.format_phrasings(all_rows, "constraints"):
         print(phrasings)
     if len(seeds) > 1:
@@ -179,9 +180,8 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     from diffplan.jax_cache import enable_compilation_cache
 
     enable_compilation_cache()
-    from tqdm import tqdm
-
     from envs.kuka.config import TaskSpec
+    from experiments.harness.progress import bar as progress_bar
 
     progress = not args.no_progress
     planner_policy = args.policy == "planner"
@@ -200,9 +200,9 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     episodes = {(spec, seed): ke.generate_episodes(spec, args.episodes, seed, args.batch_size)
                 for spec in specs for seed in seeds}
     actors = len(modes) + len(args.baselines)
-    bar = tqdm(total=args.episodes * len(seeds) * len(specs) * actors,
-               desc=f"kuka {kind} ({args.policy})", unit="ep", disable=not progress,
-               file=sys.stderr, leave=False, dynamic_ncols=True)
+    bar = progress_bar(total=args.episodes * len(seeds) * len(specs) * actors,
+                       desc=f"kuka {kind} ({args.policy})", unit="ep", disable=not progress,
+                       file=sys.stderr, leave=False, dynamic_ncols=True)
     start = time.time()
     rows, finals = _evaluate(args, seeds, modes, specs, episodes, task, denoiser, bar)
     bar.close()

@@ -1,7 +1,7 @@
 """The Kuka world's evaluation: seeded episodes of a Table 2 column, the planner (diffplan.rollout
 on ``envs.kuka.task.KukaTask``) or the scripted expert run on them under MJX physics, success on
-the final physical block poses (contract 4), the column's results row pooled over seeds, the
-table, and the states file.
+the final physical block poses (contract 4), the column's results row pooled over seeds, and
+the states file (the table: experiments.kuka.tables).
 
 Episode i of seed S is ``generate(fold_in(PRNGKey(S), i), spec)`` in every column (so the
 columns share their initial layouts); the planner's keys: experiments.harness.core.planner_keys.
@@ -15,7 +15,6 @@ import numpy as np
 
 from envs.kuka.env import SETTLE_SECONDS
 from experiments.harness.core import per_seed_values, planner_keys, rollout_fn, seeded_episodes
-from experiments.harness.tables import format_table as _table
 from experiments.harness.intervals import clustered_interval
 
 
@@ -85,23 +84,23 @@ def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=No
     """The planner on every episode with diffplan.rollout, in calls of `batch` episodes (the
     last padded to the compiled size), the blocks then left to settle for ``settle`` simulated
     seconds. Returns the final physical states (as :func:`run_expert`, without frames) plus
-    denoiser_calls and num_plans (n,). run: the jitted (planner, keys, episodes, token) ->
-    Rollout (default harness.rollout_fn(task)). reader: (ReaderConfig, params) of a reader
-    that restates each instruction canonically before the planner reads it (envs.kuka.reader).
+    denoiser_calls, num_plans and unread (n,). run: the jitted (planner, keys, episodes, token)
+    -> Rollout (default harness.rollout_fn(task)). reader: (ReaderConfig, params) of a reader
+    that restates each instruction canonically first (envs.kuka.reader.read_episodes; unread:
+    the episodes whose instruction it could not restate, not acted on).
 
     Not the slot pool (diffplan.rollout_stream): its jitted program, with a physics reset and
     a pick-and-place in one loop body, needed more than 7 GB of memory to compile here (the
     batched rollout ~4.8 GB); a batch ends with its slowest episode, at most 6 placements."""
-    from envs.kuka.reader import restate_jit
+    from envs.kuka.reader import read_episodes
 
     run = rollout_fn(task) if run is None else run
 
     def run_batch(idx, chunk):
-        if reader is not None:
-            chunk = chunk.replace(tokens=restate_jit(*reader, chunk.tokens))
+        chunk, unread = read_episodes(reader, chunk)
         out = run(planner, planner_keys(seed, idx), chunk, 0)
         return dict(at_rest(out.final_state, settle), denoiser_calls=out.denoiser_calls,
-                    num_plans=out.num_plans)
+                    num_plans=out.num_plans, unread=unread)
 
     return batches(episodes, batch, bar, run_batch)
 
@@ -109,7 +108,7 @@ def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=No
 def constraint_success(episodes, final, pos_key: str = "block_pos", held_key: str = "held"):
     """(strict, diffuser) bool (n, 3): each instructed constraint holds at the end (padding
     rows False), by contract 4's check and by Diffuser's (the poses final[pos_key],
-    final[held_key])."""
+    final[held_key]); none in an episode a reader could not read (final["unread"])."""
     from envs.kuka import metrics
 
     pos, held = final[pos_key], final[held_key]
@@ -118,7 +117,7 @@ def constraint_success(episodes, final, pos_key: str = "block_pos", held_key: st
     for check in (metrics.on_matrix, metrics.diffuser_on_matrix):
         out.append(np.asarray(jax.vmap(lambda p, h, c: metrics.satisfied(check(p, h), c))(
             pos, held, constraints)))
-    return out[0], out[1]
+    return tuple(ok & ~np.asarray(final.get("unread", False), bool)[..., None] for ok in out)
 
 
 def episode_counts(episodes, final):
@@ -151,9 +150,9 @@ def placement_spl(episodes, final, strict, tower) -> float:
 
 
 def column_metrics(method: str, column: str, episodes, final, seconds: float) -> dict:
-    """A results row from the final physical states (numpy). settle_changed counts the
-    instructed constraints whose strict success changed while the blocks settled (0 when the
-    final states have no released poses)."""
+    """A results row from the final physical states (numpy). settle_changed: the instructed
+    constraints whose strict success changed while the blocks settled (0 without released
+    poses); unread_episodes: the episodes a reader could not read (each one failed)."""
     from envs.kuka import metrics
 
     strict, loose = constraint_success(episodes, final)
@@ -173,7 +172,7 @@ def column_metrics(method: str, column: str, episodes, final, seconds: float) ->
         "tower": 100.0 * tower.mean() if is_stacking else None,
         "placements_per_episode": float(np.mean(final["placements"])),
         "SPL": placement_spl(episodes, final, strict, tower),
-        "settle_changed": changed,
+        "settle_changed": changed, "unread_episodes": int(np.sum(final.get("unread", 0))),
         "seconds": float(seconds),
     }
     phrasings = metrics.per_phrasing_metrics(episodes.tokens, episodes.constraints, strict)
@@ -195,19 +194,6 @@ def add_intervals(row: dict, counts, per_seed: dict | None = None) -> None:
         row["per_seed"] = per_seed_values(per_seed, ("SR", "SR_diffuser", "SPL", "seconds"))
 
 
-TABLE_COLUMNS = (("method", "{:<46}", "method"), ("episodes", "{:>6d}", "eps"),
-                 ("SR", "{:>7.2f}", "SR"), ("SR_diffuser", "{:>8.2f}", "SR_Diff"),
-                 ("all_constraints", "{:>7.2f}", "all"), ("tower", "{:>7.2f}", "tower"),
-                 ("placements_per_episode", "{:>6.2f}", "moves"), ("SPL", "{:>6.3f}", "SPL"),
-                 ("denoiser_calls_per_episode", "{:>6.1f}", "calls"),
-                 ("seconds", "{:>7.1f}", "sec"))
-
-
-def format_table(rows) -> str:
-    """A plain-text table of result rows (missing values shown as '-')."""
-    return _table(rows, TABLE_COLUMNS)
-
-
 def pooled_row(method: str, rows, seconds: float) -> dict:
     """The main row: every column's constraints pooled (the contract-4 SR of the states file)."""
     total = sum(r["constraints"] for r in rows)
@@ -225,7 +211,7 @@ def pooled_row(method: str, rows, seconds: float) -> dict:
            "tower": mean("tower", "episodes"),
            "placements_per_episode": mean("placements_per_episode", "episodes"),
            "SPL": mean("SPL", "episodes"),
-           "settle_changed": sum(r.get("settle_changed", 0) for r in rows),
+           **{k: sum(r.get(k, 0) for r in rows) for k in ("settle_changed", "unread_episodes")},
            "seconds": float(seconds)}
     if any("denoiser_calls_per_episode" in r for r in rows):
         row["denoiser_calls_per_episode"] = mean("denoiser_calls_per_episode", "episodes")

@@ -49,15 +49,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
                      "overwritten)")
     cli.check_output_file(parser, "--json", args.json)
     import jax
-    from tqdm import tqdm
+    from experiments.harness.progress import bar as progress_bar
 
     from diffplan.reader import save_reader, train_reader
     from envs.kuka import reader
 
     config = reader.reader_config()
     start = time.time()
-    with tqdm(total=len(seeds), desc="reader", unit="tagger", disable=args.no_progress,
-              file=sys.stderr, leave=False) as bar:
+    with progress_bar(total=len(seeds), desc="reader", unit="tagger",
+                      disable=args.no_progress, file=sys.stderr, leave=False) as bar:
         params = train_reader(config, reader.role_batch, seeds, args.steps,
                               progress=lambda: bar.update(1))
     minutes = (time.time() - start) / 60
@@ -72,7 +72,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
           f"{harness.VALIDATION_SEED}); {len(seeds)} taggers x {args.steps} steps, "
           f"{minutes:.1f} min")
     print(tables.format_table([{"method": "reader", **rates}],
-                              [("method", "{}", "")] + [(p, "{:11.1f}", p) for p in PHRASINGS]))
+                              [("method", "{}", "")] + [(p, "{:11.1f}", p) for p in PHRASINGS],
+                              [(" / ".join(PHRASINGS), "% of the instructions in those phrasings "
+                                                       "restated exactly as the canonical one")]))
     print(f"wrote {args.out}")
     result = {"experiment": "train_reader", "out": args.out, "seeds": seeds,
               "steps": args.steps, "minutes": minutes, "read": rates,

@@ -150,25 +150,29 @@ def main(argv: Sequence[str] | None = None) -> dict:
         parser.error(str(e))
     cli.check_at_least(parser, "--steps", args.steps, 1)
     cli.check_output_file(parser, "--json", args.json)
-    from tqdm import tqdm
+    from experiments.harness.progress import bar
 
     split = grammar.RELATION_SPLIT
     train = compiled([grammar.RELATION_TEMPLATES[k] for k in split.training] + extra)
     held = [grammar.RELATION_TEMPLATES[k] for k in split.unseen]
     rows = []
-    for seed in tqdm(seeds, desc="role probe", unit="tagger", disable=args.no_progress,
-                     file=sys.stderr, leave=False):
-        trained, read = train_and_read(seed, train, compiled(held), args.steps,
-                                       args.word_dropout)
-        rows.append({"method": f"seed {seed}", "training": trained,
-                     **{f"#{k}": r for k, r in zip(split.unseen, read)},
-                     "all_development": min(read) == 100.0})
-    columns = [("method", "{}", "tagger"), ("training", "{:9.1f}", "training")] + [
+    with bar(total=len(seeds), desc="role probe", unit="tagger", disable=args.no_progress,
+             file=sys.stderr, leave=False) as taggers:
+        for seed in seeds:
+            trained, read = train_and_read(seed, train, compiled(held), args.steps,
+                                           args.word_dropout)
+            rows.append({"method": f"seed {seed}", "training": trained,
+                         **{f"#{k}": r for k, r in zip(split.unseen, read)},
+                         "all_development": min(read) == 100.0})
+            taggers.update(1)
+    columns = [("method", "{}", "tagger", "the tagger's training seed"),
+               ("training", "{:9.1f}", "training", "% of training-phrasing sentences read")] + [
         (f"#{k}", "{:7.1f}", f"#{k}") for k in split.unseen]
     print(f"sentences whose block words get their roles, % of {EVAL_SENTENCES} per phrasing "
           f"({args.steps} steps; development: " + "; ".join(
               f"#{k} {t!r}" for k, t in zip(split.unseen, held)) + ")")
-    print(tables.format_table(rows, columns))
+    print(tables.format_table(rows, columns, [("#k", "% of development phrasing k's sentences "
+                                                        "read (both block words' roles right)")]))
     print(f"taggers that read every development phrasing: "
           f"{sum(r['all_development'] for r in rows)} of {len(rows)}")
     result = {"experiment": "kuka_role_probe", "extra": extra, "steps": args.steps,

@@ -110,7 +110,7 @@ KUKA_DATA = ("- trained on the Kuka denoiser's task specs (the four Table 2 colu
 
 def _kuka_results(name, method, result) -> list[str]:
     """The NOTE.md lines of a Kuka CLI's results (its rows of the baseline)."""
-    from experiments.kuka.eval import format_table as kuka_table
+    from experiments.kuka.tables import format_table as kuka_table
 
     rows = [r for r in result["rows"] if r["method"].startswith(method + ",")]
     if not rows:

@@ -17,7 +17,7 @@ import json
 import os
 
 from experiments.gridworld import eval as gridworld_eval
-from experiments.kuka import eval as kuka_eval, spec as ks
+from experiments.kuka import spec as ks, tables as kuka_tables
 from experiments.gridworld.spec import FAR_TRAINING_NAME, MODE_REPLAN, TRAINING_NAME
 from experiments.harness.core import CHECKPOINT_ROOT
 
@@ -59,7 +59,7 @@ def _is_kuka(result) -> bool:
 
 def _result_table(result) -> str:
     if _is_kuka(result):
-        return kuka_eval.format_table(result["rows"])
+        return kuka_tables.format_table(result["rows"])
     return gridworld_eval.format_table(result["rows"])
 
 

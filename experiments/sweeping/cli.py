@@ -114,8 +114,7 @@ def main(argv=None) -> dict:
     cli.check_output_dir(parser, "--trajectories", args.trajectories)
     configs = _configurations(parser, args, given)
     enable_compilation_cache()
-    from tqdm import tqdm
-
+    from experiments.harness.progress import bar
     from experiments.sweeping.run import Runner
 
     runner = Runner(progress=not args.no_progress)
@@ -126,8 +125,8 @@ def main(argv=None) -> dict:
         except SweepError as e:
             parser.error(str(e))
     rows = []
-    outer = tqdm(total=len(configs), desc="configurations", unit="cfg", file=sys.stderr,
-                 disable=args.no_progress, leave=True, position=0)
+    outer = bar(total=len(configs), desc="configurations", unit="cfg", file=sys.stderr,
+                disable=args.no_progress, leave=True, position=0)
     for i, config in enumerate(configs):
         rows.append(runner.run(config, i, args.trajectories))
         outer.update(1)

@@ -96,8 +96,8 @@ class Runner:
         return self._compiled[key], time.time() - t0
 
     def _bar(self, config: dict, index: int):
-        from tqdm import tqdm
-        return tqdm(total=config["episodes"], desc=f"[{index + 1}] {label(config)} seed "
+        from experiments.harness.progress import bar
+        return bar(total=config["episodes"], desc=f"[{index + 1}] {label(config)} seed "
                     f"{config['seed']}", unit="ep", disable=not self.progress,
                     file=sys.stderr, leave=True, dynamic_ncols=True)
 
