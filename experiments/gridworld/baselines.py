@@ -58,7 +58,7 @@ def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_siz
                   methods: Sequence[str] | None = None,
                   dd_num_steps: int = DEFAULT_DD_NUM_STEPS,
                   dd_guidance: float = DEFAULT_DD_GUIDANCE,
-                  episodes_by_seed: dict | None = None) -> list[dict]:
+                  episodes_by_seed: dict | None = None, keep: dict | None = None) -> list[dict]:
     """:func:`policy_rows` of the baselines ("BC", "CQL", "DD-style"; methods among
     BASELINES, default all) from the shipped checkpoints under checkpoint_root (default
     checkpoints/baselines; :func:`policy_directory` picks a baseline's model of the setting).
@@ -68,15 +68,17 @@ def baseline_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_siz
                             dd_num_steps=dd_num_steps, dd_guidance=dd_guidance)
                 for name in (BASELINES if methods is None else methods)]
     return policy_rows(policies, setting, seeds, episodes, batch_size, progress,
-                       episodes_by_seed=episodes_by_seed)
+                       episodes_by_seed=episodes_by_seed, keep=keep)
 
 
 def reference_rows(setting: str, seeds: tuple[int, ...], episodes: int, batch_size: int,
-                   progress: bool, *, episodes_by_seed: dict | None = None) -> list[dict]:
+                   progress: bool, *, episodes_by_seed: dict | None = None,
+                   keep: dict | None = None) -> list[dict]:
     """:func:`policy_rows` of the reference agents ("oracle", "searcher":
     envs.gridworld.agents), which bound what a planner can do; no checkpoint, no network."""
     return policy_rows([REFERENCE_POLICIES[name] for name in REFERENCE_AGENTS], setting, seeds,
-                       episodes, batch_size, progress, episodes_by_seed=episodes_by_seed)
+                       episodes, batch_size, progress, episodes_by_seed=episodes_by_seed,
+                       keep=keep)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,7 +6,9 @@ executed trajectories, a profile and figures.
 
 Seeds: see experiments.harness.core. Training draws its examples from ``fold_in(step_key,
 TRAIN_STREAM)`` keys of its own seed (``envs.gridworld.training``), so training never sees the
-evaluation episodes (tests/test_compile_experiments.py checks a sample for overlap).
+evaluation episodes; tests/test_training_disjoint.py recomputes every episode of the shipped
+runs and compares their worlds with the validation and evaluation seeds' (1O1G, whose worlds
+repeat, has its overlapping episodes counted and left out of the rows).
 """
 from __future__ import annotations
 
@@ -80,8 +82,12 @@ def _print_summary(spec, args, seeds, result) -> None:
     excluded = sum(result["excluded_training_episodes"].values())
     if excluded:
         print(f"{excluded} of {args.episodes * len(seeds)} episodes equal a training episode of "
-              "this checkpoint and are left out of the planner's rows")
+              "this checkpoint and are left out of every row")
     print(ge.format_table(result["rows"]))
+    for row in result["rows"]:
+        if "named_first_percent" in row:
+            print(f"{row['method']}: stood on the named distractor before the true reference "
+                  f"in {row['named_first_percent']:.1f}% of {row['control_episodes']} episodes")
     if phrasings := tables.format_phrasings(result["rows"]):
         print(phrasings)
     if len(seeds) > 1:
@@ -113,21 +119,24 @@ def _posterior_rows(spec, task, modes, episodes_by_seed, args, progress) -> list
                       episodes_by_seed, args, progress)[0] for mode in modes]
 
 
-def _policy_rows(setting, seeds, args, progress, episodes_by_seed, language) -> list[dict]:
+def _policy_rows(setting, seeds, args, progress, episodes_by_seed, language,
+                 keep=None) -> list[dict]:
     """The rows of --baselines and, unless --no-reference-agents, of the reference agents on
-    the episodes of one phrasing, their methods naming it."""
+    the episodes of one phrasing, their methods naming it, counting the episodes keep marks
+    (the planner's rows count the same ones)."""
     from experiments.gridworld.baselines import baseline_rows, reference_rows
 
     extra = []
     if args.baselines:
         try:
             extra += baseline_rows(setting, seeds, args.episodes, args.batch_size, progress,
-                                   methods=args.baselines, episodes_by_seed=episodes_by_seed)
+                                   methods=args.baselines, episodes_by_seed=episodes_by_seed,
+                                   keep=keep)
         except (FileNotFoundError, ValueError) as e:
             harness.fail(f"cannot evaluate the baselines: {e}")
     if not args.no_reference_agents:
         extra += reference_rows(setting, seeds, args.episodes, args.batch_size, progress,
-                                episodes_by_seed=episodes_by_seed)
+                                episodes_by_seed=episodes_by_seed, keep=keep)
     for row in extra:
         row["method"] = method_name(row["method"], language)
         row["language"] = language
@@ -162,10 +171,9 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                         for seed in seeds}
         if keep is None:
             # Episodes whose world the model trained on are run (so every other episode keeps
-            # its key) but left out of the planner's rows and trajectories (the baselines,
-            # trained on data of their own, and the reference agents, trained on nothing, are
-            # measured on every episode). The phrasing changes the tokens only: every
-            # language has the same worlds, the same keep.
+            # its key) but left out of every row and the trajectories: the planner's, the
+            # baselines' and the reference agents' rows count the same episodes. The phrasing
+            # changes the tokens only: every language has the same worlds, the same keep.
             keep = {seed: ~ge.training_overlap(checkpoint, setting, eps)
                     for seed, eps in all_episodes.items()}
         per_seed = {seed: ge.select(eps, keep[seed]) for seed, eps in all_episodes.items()}
@@ -176,7 +184,12 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
             rows.append(row)
         if args.posterior_denoiser:
             rows += _posterior_rows(lspec, task, modes, all_episodes, args, progress)
-        rows += _policy_rows(setting, seeds, args, progress, all_episodes, language)
+        if args.control:
+            from experiments.gridworld.controls import control_rows
+
+            rows += control_rows(args.control, lspec, modes, all_episodes, lambda s, m, n, e, k:
+                                 _mode_row(s, task, denoiser, m, n, e, args, progress, k))
+        rows += _policy_rows(setting, seeds, args, progress, all_episodes, language, keep)
 
     language = languages[0]
     per_seed = episodes_of[language]

@@ -105,6 +105,12 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "comma-separated of bc,cql,dd; the flag alone: all three), measured on "
                         "the same episodes and seeds as the planner's rows")
     add_reference_agents_flag(p)
+    p.add_argument("--control", choices=("names", "direction"), default=None,
+                   help="add control rows: every mode again on the same episodes with one word "
+                        "of the instruction changed: 'names' names a distractor seen at t = 0 "
+                        "as the reference (episodes with one; the row's named_first_percent: "
+                        "the agent stood on it before the true reference), 'direction' "
+                        "reverses the direction word (SR and SPL show whether it was read)")
     p.add_argument("--posterior-denoiser", action="store_true",
                    help="add a row per planning mode planned with a denoiser that needs no "
                         "learning and guesses the hidden target exactly: each plan heads for "
@@ -177,6 +183,9 @@ def check_args(parser, args, spec):
         parser.error(str(e))
     if args.psi != "follow" and args.follow_mark != spec.follow_mark:
         parser.error("--follow-mark sets the follow psi's threshold: it needs --psi follow")
+    if args.control and not spec.grid_config().has_reference:
+        parser.error(f"--control {args.control} changes the reference or direction word, which "
+                     f"{spec.setting} instructions do not have")
     if args.posterior_denoiser and args.psi != "search":
         parser.error("--posterior-denoiser plans no path, so it serves --psi search only")
     return modes
