@@ -1,5 +1,6 @@
 """Qualitative figures of the grid-world experiments (the paper's Figs. 7-8): for a few episodes,
-the map with the executed path, and the predicted path and goal estimate at several re-plans."""
+the map with the executed path over the expert's, and the predicted path, goal estimate and
+sub-goal at several re-plans; the instruction once and one legend per figure."""
 from __future__ import annotations
 
 import os
@@ -16,13 +17,11 @@ def _replan_moments(steps: int, count: int = 4):
     return sorted(set(int(round(x)) for x in np.linspace(0, steps - 1, count)))
 
 
-def write_figures(out_dir, spec, task, denoiser, episodes, seed, count):
+def write_figures(out_dir, spec, task, denoiser, episodes, seed, count, instructions=None):
     """Runs the main planning mode on the first `count` episodes with plans recorded and
-    writes one PNG per episode. Returns the written paths."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    writes one PNG per episode (envs.gridworld.render.episode_figure: the executed path over
+    the expert's, then the plan at a few moves). instructions: each episode's instruction as
+    the figure shows it (default: its tokens decoded). Returns the written paths."""
     from envs.gridworld import env, grammar, render
     from experiments.gridworld.eval import evaluate_mode
 
@@ -34,19 +33,15 @@ def write_figures(out_dir, spec, task, denoiser, episodes, seed, count):
     paths = []
     for i in range(count):
         steps = int(rollout.steps[i])
-        moments = _replan_moments(steps)
         positions = np.asarray(rollout.positions[i])
-        fig, axes = plt.subplots(1, len(moments) + 1, figsize=(4 * (len(moments) + 1), 4.4))
-        axes = np.atleast_1d(axes)
-        instruction = grammar.decode(episodes.tokens[i])
-        args = (np.asarray(episodes.grid[i]), np.asarray(episodes.agent[i]),
-                np.asarray(episodes.target[i]), np.asarray(episodes.reference[i]), instruction)
-        success = bool(np.all(positions[steps] == np.asarray(episodes.target[i])))
-        render.render_episode(axes[0], *args, path=np.asarray(episodes.expert_path[i]),
-                              executed=positions[: steps + 1],
-                              title=f"executed ({steps} moves, "
-                                    f"{'success' if success else 'failure'})")
-        for ax, t in zip(axes[1:], moments):
+        cells = dict(grid=np.asarray(episodes.grid[i]), target=np.asarray(episodes.target[i]),
+                     reference=np.asarray(episodes.reference[i]))
+        success = bool(np.all(positions[steps] == cells["target"]))
+        panels = [dict(cells, agent=np.asarray(episodes.agent[i]),
+                       path=np.asarray(episodes.expert_path[i]), path_label="expert path",
+                       executed=positions[: steps + 1],
+                       title=f"executed: {steps} moves, {'success' if success else 'failure'}")]
+        for t in _replan_moments(steps):
             # The agent's knowledge at move t: replay the executed moves to get the seen area.
             state = env.reset(jax.tree.map(lambda x: x[i], subset), grid_config)
             for move in range(t):
@@ -55,16 +50,12 @@ def write_figures(out_dir, spec, task, denoiser, episodes, seed, count):
                 if action is not None:
                     state = env.step(state, jnp.int32(action), grid_config)
             plan = np.asarray(rollout.plans[i, t])
-            render.render_episode(ax, np.asarray(episodes.grid[i]), positions[t], *args[2:],
-                                  seen=np.asarray(state.seen), path=plan[..., 0],
-                                  goal=plan[..., 1],
-                                  subgoal=plan[..., 2] if plan.shape[-1] > 2 else None,
-                                  executed=positions[: t + 1],
-                                  title=f"plan at move {t}")
-        fig.suptitle(instruction, fontsize=10)
-        fig.tight_layout()
+            panels.append(dict(cells, agent=positions[t], seen=np.asarray(state.seen),
+                               path=plan[..., 0], path_label="planned path", goal=plan[..., 1],
+                               subgoal=plan[..., 2] if plan.shape[-1] > 2 else None,
+                               executed=positions[: t + 1], title=f"plan at move {t}"))
         path = os.path.join(out_dir, f"{spec.name}_episode{i:03d}.png")
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
+        render.episode_figure(path, panels, grammar.decode(episodes.tokens[i])
+                              if instructions is None else instructions[i])
         paths.append(path)
     return paths
