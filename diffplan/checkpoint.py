@@ -145,13 +145,28 @@ class _ReadOnlyNotices(logging.Filter):
 logging.getLogger("absl").addFilter(_ReadOnlyNotices())
 
 
+def _other_processes() -> bool:
+    """True in a multi-process run (``diffplan.distributed``); never starts JAX's backend."""
+    return bool(jax.distributed.is_initialized()) and jax.process_count() > 1
+
+
 def _manager(directory: str, *, read_only: bool = False,
              max_to_keep: Optional[int] = MAX_TO_KEEP) -> ocp.CheckpointManager:
     if read_only:
         max_to_keep = None
+    extra = {}
+    if _other_processes():
+        # Multi-process runs have one writer (process 0, ``save_checkpoint``) and readers that
+        # read on their own: each process's manager is a manager of that process alone (no
+        # barriers with the others, which do not call it in step).
+        me = jax.process_index()
+        extra["multiprocessing_options"] = ocp.options.MultiprocessingOptions(
+            primary_host=me, active_processes={me})
+        if not read_only:
+            os.makedirs(directory, exist_ok=True)
     options = ocp.CheckpointManagerOptions(
         max_to_keep=max_to_keep, enable_async_checkpointing=False, read_only=read_only,
-        create=not read_only)
+        create=not read_only and not extra, **extra)
     handlers = {"ema_params": ocp.StandardCheckpointHandler(),
                 "train_state": ocp.StandardCheckpointHandler(),
                 "metadata": ocp.JsonCheckpointHandler()}
@@ -369,11 +384,27 @@ def save_checkpoint(directory: str, step: int, params: Any, metadata: Mapping[st
       max_to_keep: older steps beyond this many are deleted (None: keep all).
 
     Returns:
-      The path of the step directory.
+      The path of the step directory. In a multi-process run (``diffplan.distributed``) every
+      process calls it and only process 0 writes (the state is replicated, so its copy is the
+      whole state); every process returns once the step is committed (a barrier).
     """
     step = int(step)
     if step < 0:
         raise ValueError(f"step must be >= 0, got {step}")
+    if not _other_processes():
+        return _save(directory, step, params, metadata, train_state, max_to_keep)
+    from diffplan import distributed
+
+    try:
+        if jax.process_index() == 0:
+            return _save(directory, step, params, metadata, train_state, max_to_keep)
+        return os.path.join(os.path.abspath(directory), str(step))
+    finally:
+        distributed.barrier(f"diffplan checkpoint {os.path.abspath(directory)} {step}")
+
+
+def _save(directory: str, step: int, params: Any, metadata: Mapping[str, Any],
+          train_state: Any, max_to_keep: Optional[int]) -> str:
     meta = dict(_json_normalise(dict(metadata)))
     items = {EVAL_ITEM: ocp.args.StandardSave(_host(params))}
     if train_state is not None:
@@ -503,7 +534,7 @@ def load_checkpoint(directory: str, step: Optional[int] = None, *, target: Any =
         are named).
     """
     step = _resolve_step(directory, step)
-    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     metadata = read_metadata(directory, step)  # verifies the digest
     if target is None:
         names = [EVAL_ITEM]
@@ -564,7 +595,7 @@ def load_params_for_eval(directory: str, model_config_expected: Any = None, *, m
         named in the message), or the checkpoint names an unregistered network.
     """
     step = _resolve_step(directory, step)
-    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    sharding = sharding or jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     metadata = read_metadata(directory, step)  # verifies the digest
     if model_config_expected is not None:
         diffs = diff_dicts(metadata.get("model_config", {}),

@@ -39,6 +39,7 @@ __all__ = [
     "constrain_replicated",
     "data_parallel_jit",
     "per_device",
+    "PerDevice",
 ]
 
 DATA_AXIS = "data"
@@ -92,18 +93,35 @@ def check_divisible(batch_size: int, mesh: Mesh) -> None:
             f"'{DATA_AXIS}' mesh axis; use a multiple of {n}")
 
 
+def _place(tree: Any, sharding: NamedSharding) -> Any:
+    """``jax.device_put(tree, sharding)``; on a mesh over several processes
+    (``diffplan.distributed``) each leaf that is not yet a global array (numpy, or an array of
+    this process's devices) holds the same value on every process, and each process places
+    its own devices' parts of it (no cross-process check, no transfer)."""
+    if sharding.is_fully_addressable:
+        return jax.device_put(tree, sharding)
+
+    def leaf(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return x if x.sharding == sharding else jax.device_put(x, sharding)
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree_util.tree_map(leaf, tree)
+
+
 def shard_batch(tree: Any, mesh: Mesh) -> Any:
     """Places every leaf of ``tree`` with its leading axis split over ``"data"``.
 
     Leaves must share the leading dimension, divisible by the number of devices.
     """
     check_divisible(batch_size_of(tree), mesh)
-    return jax.device_put(tree, batch_sharding(mesh))
+    return _place(tree, batch_sharding(mesh))
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:
     """Places a full copy of every leaf of ``tree`` on every device of ``mesh``."""
-    return jax.device_put(tree, replicated_sharding(mesh))
+    return _place(tree, replicated_sharding(mesh))
 
 
 def constrain_batch(tree: Any, mesh: Mesh) -> Any:
@@ -190,3 +208,51 @@ def per_device(fn: Callable, mesh: Mesh, *, num_replicated: int = 1) -> Callable
                          check_rep=False)(*args)
 
     return jax.jit(wrapped)
+
+
+class PerDevice:
+    """``jit(shard_map(fn))`` over a mesh, like :func:`per_device`, that places its own
+    arguments: those at ``replicated_argnums`` are copied to every device, the others split
+    along their leading axis (its size divisible by the mesh's devices); outputs are split.
+    Arguments may be numpy or jax arrays holding the same values on every process (a mesh over
+    several processes, ``diffplan.distributed``); outputs are global arrays (read them with
+    ``diffplan.distributed.gather``). ``lower(*args).compile()`` gives a callable that places
+    its arguments the same way (for programs compiled ahead of time)."""
+
+    def __init__(self, fn: Callable, mesh: Mesh, *, replicated_argnums: Sequence[int] = (0,)):
+        from jax.experimental.shard_map import shard_map
+
+        self.mesh = mesh
+        self.replicated = frozenset(int(i) for i in replicated_argnums)
+        self._fn = fn
+        self._jitted = {}
+        self._shard_map = shard_map
+
+    def _jit(self, nargs: int):
+        if nargs not in self._jitted:
+            specs = tuple(P() if i in self.replicated else P(DATA_AXIS) for i in range(nargs))
+            self._jitted[nargs] = jax.jit(self._shard_map(
+                self._fn, mesh=self.mesh, in_specs=specs, out_specs=P(DATA_AXIS),
+                check_rep=False))
+        return self._jitted[nargs]
+
+    def place(self, args: Sequence[Any]) -> tuple:
+        """The arguments placed on the mesh (replicated or split)."""
+        return tuple(replicate(a, self.mesh) if i in self.replicated
+                     else shard_batch(a, self.mesh) for i, a in enumerate(args))
+
+    def __call__(self, *args):
+        return self._jit(len(args))(*self.place(args))
+
+    def lower(self, *args):
+        jitted, place = self._jit(len(args)), self.place
+
+        class Lowered:
+            def __init__(self, lowered):
+                self.lowered = lowered
+
+            def compile(self):
+                compiled = self.lowered.compile()
+                return lambda *a: compiled(*place(a))
+
+        return Lowered(jitted.lower(*place(args)))

@@ -28,6 +28,7 @@ import jax
 import numpy as np
 
 from diffplan import checkpoint as ckpt
+from diffplan import distributed
 from diffplan import sharding as shd
 from diffplan.losses import Batch, check_batch, diffusion_loss, make_train_step, make_val_loss
 from diffplan.train_state import (PREDICTIONS, TrainConfig, TrainState, hashable,
@@ -178,7 +179,8 @@ def _resume(out_dir: str, init_fn: Callable, metadata: dict, repl):
             raise ValueError(f"checkpoint {step} in {out_dir!r} holds step {int(state.step)}")
         for bad, error in damaged:
             aside = os.path.join(out_dir, f"corrupt-{bad}-{int(time.time())}")
-            os.replace(os.path.join(out_dir, str(bad)), aside)
+            if distributed.is_writer():  # one process moves it (multi-process runs)
+                os.replace(os.path.join(out_dir, str(bad)), aside)
             warnings.warn(f"{error}; moved it to {aside} and resumed from step {step}",
                           stacklevel=3)
         return step, state, stored
@@ -304,14 +306,21 @@ def fit(step_fn: Callable, init_fn: Callable, *, steps: int, seed: int, out_dir:
     repl = shd.replicated_sharding(mesh)
     os.makedirs(out_dir, exist_ok=True)
     last_ckpt, state, stored = _resume(out_dir, init_fn, metadata, repl)
+    # Multi-process runs (diffplan.distributed): every process resumes from the same step of a
+    # directory all of them see; process 0 alone writes the log, checkpoints and bar.
+    distributed.agree(-1 if last_ckpt is None else last_ckpt,
+                      f"the checkpoint step each process resumes from in {out_dir!r}")
+    writes = distributed.is_writer()
+    progress, tensorboard = progress and writes, tensorboard and writes
     wall_before = float(stored.get("wall_time", 0.0)) if stored else 0.0
     if state is None:
         state = shd.replicate(init_fn(), mesh)
     start = int(state.step)
-    with open(os.path.join(out_dir, "config.json"), "w") as f:
-        json.dump(ckpt.config_to_dict(metadata), f, indent=2, sort_keys=True)
     metrics_path = os.path.join(out_dir, "metrics.jsonl")
-    _truncate_metrics(metrics_path, start)
+    if writes:
+        with open(os.path.join(out_dir, "config.json"), "w") as f:
+            json.dump(ckpt.config_to_dict(metadata), f, indent=2, sort_keys=True)
+        _truncate_metrics(metrics_path, start)
     if start >= steps:
         return FitResult(state, wall_before, None)
 
@@ -360,7 +369,8 @@ def fit(step_fn: Callable, init_fn: Callable, *, steps: int, seed: int, out_dir:
                 if do_val:
                     record.update(validate(state))
                 t_last, step_last = time.perf_counter(), done
-                _append_record(metrics_path, record, last_ckpt)
+                if writes:
+                    _append_record(metrics_path, record, last_ckpt)
                 if writer is not None:
                     for k, v in record.items():
                         if k != "step":

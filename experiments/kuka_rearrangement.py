@@ -2,7 +2,10 @@
 
 `python -m experiments.kuka_rearrangement --help` lists the flags; see experiments/kuka/cli.py.
 """
-from experiments.kuka.cli import main
-
 if __name__ == "__main__":
+    from experiments.harness.processes import join_from_argv
+
+    join_from_argv()  # first: jax.distributed before anything touches JAX
+    from experiments.kuka.cli import main
+
     main("rearrangement")

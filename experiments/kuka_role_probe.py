@@ -2,7 +2,10 @@
 
 `python -m experiments.kuka_role_probe --help`; see experiments/kuka/role_probe.py.
 """
-from experiments.kuka.role_probe import main
-
 if __name__ == "__main__":
+    from experiments.harness.processes import join_from_argv
+
+    join_from_argv()  # first: jax.distributed before anything touches JAX
+    from experiments.kuka.role_probe import main
+
     main()

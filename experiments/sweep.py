@@ -2,7 +2,10 @@
 
 `python -m experiments.sweep --help`; see experiments/sweeping/cli.py.
 """
-from experiments.sweeping.cli import main
-
 if __name__ == "__main__":
+    from experiments.harness.processes import join_from_argv
+
+    join_from_argv()  # first: jax.distributed before anything touches JAX
+    from experiments.sweeping.cli import main
+
     main()

@@ -17,7 +17,7 @@ import os
 from typing import Sequence
 
 from experiments.gridworld import eval as ge
-from experiments.harness import cli, core as harness, tables
+from experiments.harness import cli, core as harness, processes, tables
 from experiments.gridworld.flags import build_parser, check_args
 from experiments.gridworld.spec import (LANGUAGE_CHOICES, METHOD_NAMES, MODE_REPLAN, SPECS,
                                         TRIGGER_WORDS, load_checked, method_name, train_setting)
@@ -147,6 +147,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     spec = SPECS[setting]
     parser = build_parser(spec)
     args = parser.parse_args(argv)
+    processes.start(parser, args)
     modes = check_args(parser, args, spec)
     seeds = harness.parse_seeds(parser, args)
     spec = dataclasses.replace(spec, num_steps=args.num_steps,
@@ -202,7 +203,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     _print_summary(spec, args, seeds, result)
     if args.json:
         cli.write_json(args.json, result)
-    if args.trajectories:
+    if args.trajectories and processes.writes():
         ge.write_trajectories(args.trajectories, rollouts[main_mode],
                               harness.concat_trees(list(per_seed.values())), grid_config)
         print(f"wrote {args.trajectories} ({METHOD_NAMES[main_mode]} trajectories)")
@@ -210,7 +211,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
         ge.write_profile(args.profile, spec, task, denoiser, per_seed[seeds[0]], seeds[0],
                          main_mode, args.batch_size)
         print(f"wrote a profiler trace of one {METHOD_NAMES[main_mode]} batch to {args.profile}")
-    if args.figures:
+    if args.figures and processes.writes():
         from experiments.gridworld.figures import write_figures
         paths = write_figures(args.figures, spec, task, denoiser, per_seed[seeds[0]], seeds[0],
                               min(args.num_figures, args.episodes))

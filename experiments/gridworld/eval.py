@@ -88,6 +88,9 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
     from diffplan.planner import Planner
     from experiments.harness.progress import PARTS, RELAY, bar as progress_bar
 
+    from diffplan.distributed import gather
+    from diffplan.sharding import data_mesh
+
     n = int(np.shape(episodes.tokens)[0])
     planner = Planner(denoiser, spec.planner_config(mode, record_plans=record_plans))
     stream = mode in STREAM_MODES and not record_plans
@@ -95,12 +98,18 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
     bar = progress_bar(total=n, desc=f"{spec.setting} {METHOD_NAMES[mode]} (seed {seed})",
                        unit="ep", disable=not progress, file=sys.stderr, leave=True,
                        dynamic_ncols=True)
-    per_call = min(n, 4 * batch_size) if stream else batch_size
+    # batch_size is per device: a call holds devices x (its episodes per device); each device
+    # runs its share (harness.rollout_fn over the mesh of every process's devices). Recorded
+    # plans are for figures, which process 0 draws alone: on its own first device.
+    mesh = data_mesh(jax.local_devices()[:1]) if record_plans else data_mesh()
+    devices = mesh.size
+    per_device = min(-(-n // devices), 4 * batch_size) if stream else batch_size
+    per_call = per_device * devices
     if stream:
-        run = rollout_fn(task, min(batch_size, per_call))
+        run = rollout_fn(task, min(batch_size, per_device), mesh)
         order = np.arange(n)
     else:
-        run = rollout_fn(task)
+        run = rollout_fn(task, None, mesh)
         order = np.argsort(np.asarray(episodes.expert_length), kind="stable")
     outs = []
     try:
@@ -108,14 +117,16 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
             idx = order[lo:lo + per_call]
             chunk = jax.tree.map(lambda x: x[idx], episodes)
             keys = planner_keys(seed, idx)
-            if len(idx) < per_call and lo > 0:
+            size = per_call if lo > 0 or n >= per_call else -(-n // devices) * devices
+            if len(idx) < size:
                 # Pad the last call to the compiled size (padding results are dropped).
-                pad = per_call - len(idx)
-                chunk = jax.tree.map(lambda x: np.concatenate([x, x[:pad]]), chunk)
-                keys = jnp.concatenate([keys, keys[:pad]])
+                pad = size - len(idx)
+                chunk = jax.tree.map(lambda x: np.concatenate([x, x[np.arange(pad) % len(x)]]),
+                                     chunk)
+                keys = jnp.concatenate([keys, keys[np.arange(pad) % len(idx)]])
             token = RELAY.attach(bar, offset=lo)
             try:
-                out = jax.device_get(run(planner, keys, chunk, jnp.int32(token * PARTS)))
+                out = gather(run(planner, keys, chunk, jnp.int32(token * PARTS)))
             finally:
                 RELAY.detach(token)
             outs.append(jax.tree.map(lambda x: x[:len(idx)], out))
@@ -209,9 +220,15 @@ def write_trajectories(path, rollout, episodes, grid_config):
 
 def write_profile(out_dir: str, spec, task, denoiser, episodes, seed: int, mode: str,
                   batch_size: int) -> None:
-    """A profiler trace of one (already compiled) batch of ``mode``."""
+    """A profiler trace of one (already compiled) batch of ``mode`` (process 0's, in a
+    multi-process run)."""
     n = min(batch_size, int(np.shape(episodes.tokens)[0]))
     batch = jax.tree.map(lambda x: x[:n], episodes)
     evaluate_mode(spec, task, denoiser, batch, seed, mode, n, progress=False)  # compile
-    with jax.profiler.trace(out_dir):
+    from contextlib import nullcontext
+
+    from experiments.harness.processes import writes
+
+    # Every process evaluates its share; process 0 writes its trace.
+    with jax.profiler.trace(out_dir) if writes() else nullcontext():
         evaluate_mode(spec, task, denoiser, batch, seed, mode, n, progress=False)

@@ -10,6 +10,7 @@ from envs.gridworld.task import PSI_KINDS, check_follow_mark
 from experiments.harness import cli, core as harness
 from experiments.gridworld.spec import (LANGUAGE_CHOICES, MODE_REPLAN, TRAINING_NAME,
                                         TRIGGER_WORDS, ExperimentSpec)
+from experiments.harness.processes import add_process_flags
 from experiments.harness.recipes import MODEL_SIZES
 
 
@@ -90,7 +91,8 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "phrasings training never saw, made of its words), or 'all' (a row per "
                         "phrasing and mode; the same worlds in each)")
     p.add_argument("--batch-size", type=int, default=spec.eval_batch,
-                   help=f"episodes per jitted evaluation call (default {spec.eval_batch})")
+                   help=f"episodes per jitted evaluation call and device: the re-planning "
+                        f"modes' slots (default {spec.eval_batch})")
     p.add_argument("--figures", metavar="DIR",
                    help="write PNGs of a few episodes: map, executed path, and the predicted "
                         "paths and goal estimates at several re-plans")
@@ -120,6 +122,7 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "on every episode: what perfect inference would score (search psi "
                         "only)")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    add_process_flags(p)
     return p
 
 

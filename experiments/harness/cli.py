@@ -82,10 +82,16 @@ def write_json(path: str, result: dict, announce: bool = True) -> None:
     """Writes ``result`` as indented JSON to ``path`` atomically (a temporary file in the same
     directory, then renamed: a crash mid-write never leaves half a file), creating the
     directory. A failure (full disk, permissions changed during the run) ends the program with
-    one line on stderr, exit code 3; what was printed before stays on screen."""
+    one line on stderr, exit code 3; what was printed before stays on screen. In a
+    multi-process run only process 0 writes (``processes.writes``)."""
     import json
     import sys
     import tempfile
+
+    from experiments.harness.processes import writes
+
+    if not writes():
+        return
 
     directory = os.path.dirname(os.path.abspath(path))
     tmp = None
@@ -105,6 +111,21 @@ def write_json(path: str, result: dict, announce: bool = True) -> None:
             os.unlink(tmp)
     if announce:
         print(f"wrote {path}")
+
+
+def atomic_file(path: str, write) -> None:
+    """``write(tmp)`` writes the file, then it becomes ``path`` at once (a temporary name of
+    the same suffix in the same directory, renamed): a process killed mid-write leaves no half
+    file at ``path``."""
+    directory, name = os.path.split(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    tmp = os.path.join(directory, f".tmp-{os.getpid()}-{name}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
 
 
 def add_training_flags(parser: argparse.ArgumentParser, *, training_name: str, served: str,

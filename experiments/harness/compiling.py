@@ -38,13 +38,18 @@ def compile_together(fn, arg_sets, min_memory_gb: float = 16.0):
 
 def compiled_planners(task, denoiser, configs: dict, episodes, batch: int, bar=None) -> dict:
     """{name: (Planner, its compiled rollout)} for each PlannerConfig of configs: the
-    rollout_fn(task) programs for batches of ``batch`` episodes shaped like ``episodes`` (a
-    leading axis), compiled at once (compile_together); each is called as rollout_fn's.
+    rollout_fn(task) programs for batches of ``batch`` episodes per device shaped like
+    ``episodes`` (a leading axis; with several devices the episodes split over them,
+    rollout_fn(task, mesh=...)), compiled at once (compile_together); each is called as
+    rollout_fn's.
     bar: a progress bar (experiments.harness.progress.bar) that says "compiling" meanwhile (a
     minute or more for MJX programs) and until its next update."""
     from diffplan.planner import Planner
+    from diffplan.sharding import data_mesh
     from experiments.harness.core import planner_keys, rollout_fn
 
+    mesh = data_mesh()
+    batch *= mesh.size
     planners = {name: Planner(denoiser, config) for name, config in configs.items()}
     idx = np.minimum(np.arange(batch), jax.tree.leaves(episodes)[0].shape[0] - 1)
     chunk = jax.tree.map(lambda x: x[idx], episodes)
@@ -52,5 +57,5 @@ def compiled_planners(task, denoiser, configs: dict, episodes, batch: int, bar=N
     args = [(p, keys, chunk, 0) for p in planners.values()]
     if bar is not None:
         bar.compiling(f"compiling {len(args)} planning program(s)")
-    runs = compile_together(rollout_fn(task), args)
+    runs = compile_together(rollout_fn(task, mesh=mesh), args)
     return {name: (p, r) for (name, p), r in zip(planners.items(), runs)}

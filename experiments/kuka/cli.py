@@ -17,7 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
-from experiments.harness import cli, compiling, core as harness, tables
+from experiments.harness import cli, compiling, core as harness, processes, tables
 from experiments.kuka import eval as ke, spec as ks, tables as kt
 from experiments.kuka.flags import build_parser, check_args
 
@@ -152,7 +152,7 @@ def _figures_and_videos(args, specs, episodes, finals, task, planner, seed) -> N
     from experiments.kuka import figures as kuka_figures
 
     count = max(args.num_figures if args.figures else 0, args.num_videos if args.video else 0)
-    if not count:
+    if not count or not processes.writes():
         return
     traces = {}
     for spec in specs:
@@ -175,10 +175,10 @@ def _figures_and_videos(args, specs, episodes, finals, task, planner, seed) -> N
 def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     parser = build_parser(kind)
     args = parser.parse_args(argv)
+    processes.start(parser, args)  # before any JAX computation; process 0 alone writes
     modes = check_args(parser, args)
     seeds = harness.parse_seeds(parser, args)
     from diffplan.jax_cache import enable_compilation_cache
-
     enable_compilation_cache()
     from envs.kuka.config import TaskSpec
     from experiments.harness.progress import bar as progress_bar
@@ -237,7 +237,7 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     _print_summary(kind, args, seeds, checkpoint, all_rows)
     if args.json:
         cli.write_json(args.json, result)
-    if args.states:
+    if args.states and processes.writes():
         parts = [finals[main_mode, s] for s in main_specs]
         ke.write_states(args.states, parts)
         print(f"wrote {args.states} ({sum(len(f['placements']) for _, f in parts)} final states "

@@ -8,6 +8,7 @@ columns share their initial layouts); the planner's keys: experiments.harness.co
 """
 from __future__ import annotations
 
+import functools
 import os
 
 import jax
@@ -49,13 +50,16 @@ def at_rest(states, settle: float) -> dict:
 
 def batches(episodes, batch: int, bar, run_batch) -> dict:
     """run_batch(idx, chunk) -> dict of arrays over every episode, in calls of `batch` (the
-    last padded with copies of its last episode, dropped afterwards); concatenated numpy."""
+    last padded with copies of its last episode, dropped afterwards); concatenated numpy (the
+    outputs gathered from every process's devices when split over them)."""
+    from diffplan.distributed import gather
+
     n = episodes.block_xy.shape[0]
     outs = []
     for lo in range(0, n, batch):
         idx = np.arange(lo, min(n, lo + batch))
         idx = np.concatenate([idx, np.full(batch - len(idx), idx[-1])])
-        out = jax.device_get(run_batch(idx, jax.tree.map(lambda x: x[idx], episodes)))
+        out = gather(run_batch(idx, jax.tree.map(lambda x: x[idx], episodes)))
         keep = min(batch, n - lo)
         outs.append({k: np.asarray(v)[:keep] for k, v in out.items()})
         if bar is not None:
@@ -85,24 +89,32 @@ def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=No
     last padded to the compiled size), the blocks then left to settle for ``settle`` simulated
     seconds. Returns the final physical states (as :func:`run_expert`, without frames) plus
     denoiser_calls, num_plans and unread (n,). run: the jitted (planner, keys, episodes, token)
-    -> Rollout (default harness.rollout_fn(task)). reader: (ReaderConfig, params) of a reader
-    that restates each instruction canonically first (envs.kuka.reader.read_episodes; unread:
-    the episodes whose instruction it could not restate, not acted on).
+    -> Rollout (default harness.rollout_fn(task, mesh=the devices' mesh)). With several
+    devices (of one process or of all, diffplan.distributed) a call holds `batch` episodes
+    per device, each device rolling out and settling its own. reader: (ReaderConfig, params)
+    of a reader that restates each instruction canonically first
+    (envs.kuka.reader.read_episodes; unread: the episodes whose instruction it could not
+    restate, not acted on).
 
     Not the slot pool (diffplan.rollout_stream): its jitted program, with a physics reset and
     a pick-and-place in one loop body, needed more than 7 GB of memory to compile here (the
     batched rollout ~4.8 GB); a batch ends with its slowest episode, at most 6 placements."""
+    from diffplan.sharding import PerDevice, data_mesh
     from envs.kuka.reader import read_episodes
 
-    run = rollout_fn(task) if run is None else run
+    mesh = data_mesh()
+    run = rollout_fn(task, mesh=mesh) if run is None else run
+    settled = functools.partial(at_rest, settle=settle)
+    if mesh.size > 1:
+        settled = PerDevice(settled, mesh, replicated_argnums=())
 
     def run_batch(idx, chunk):
         chunk, unread = read_episodes(reader, chunk)
         out = run(planner, planner_keys(seed, idx), chunk, 0)
-        return dict(at_rest(out.final_state, settle), denoiser_calls=out.denoiser_calls,
+        return dict(settled(out.final_state), denoiser_calls=out.denoiser_calls,
                     num_plans=out.num_plans, unread=unread)
 
-    return batches(episodes, batch, bar, run_batch)
+    return batches(episodes, batch * mesh.size, bar, run_batch)
 
 
 def constraint_success(episodes, final, pos_key: str = "block_pos", held_key: str = "held"):

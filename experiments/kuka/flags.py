@@ -12,6 +12,7 @@ from experiments.kuka.spec import (CARRIES, CHECKPOINT_EVERY, DEFAULT_BATCH, DEF
                                    LANGUAGE_CHOICES, MODES, NUM_STEPS, POLICIES, TRAIN_STEPS,
                                    TRAINING_NAME)
 from experiments.kuka.baselines import KUKA_BASELINES
+from experiments.harness.processes import add_process_flags
 from experiments.harness.recipes import MODEL_SIZES
 
 
@@ -65,7 +66,7 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
                         "(contract 4): single-constraint episodes first, then multi-constraint "
                         "(each over the seeds in order)")
     p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH,
-                   help=f"episodes per jitted, vmapped call (default {DEFAULT_BATCH})")
+                   help=f"episodes per jitted, vmapped call and device (default {DEFAULT_BATCH})")
     p.add_argument("--figures", metavar="DIR",
                    help="write PNGs of a few episodes: the top-down view before every "
                         "placement with the in-painted path, pick and goal estimate, and the "
@@ -83,6 +84,7 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
                         f"comma-separated of {','.join(KUKA_BASELINES)}; the flag alone: all), "
                         "measured on the same episodes, seeds and physics as the main rows")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_process_flags(p)
     return p
 
 

@@ -19,7 +19,7 @@ import argparse
 import sys
 from typing import Sequence
 
-from experiments.harness import cli, core as harness, tables
+from experiments.harness import cli, core as harness, processes, tables
 
 STEPS = 2000
 BATCH = 128
@@ -130,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="probability that a non-block word of a training sentence is "
                              "dropped (default 0)")
     cli.add_tagger_flags(parser, seeds="0,1,2", steps=STEPS, batch=BATCH, unit="sentences")
+    processes.add_process_flags(parser)  # every process trains the taggers; process 0 writes
     return parser
 
 
@@ -138,6 +139,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    processes.start(parser, args)
     from envs.kuka import grammar
 
     seeds = list(harness.parse_seeds(parser, args))

@@ -43,7 +43,8 @@ import argparse
 import json
 import sys
 
-from experiments.harness import cli, core as harness
+from experiments.harness import cli, core as harness, processes
+from experiments.sweeping import resume
 from experiments.sweeping.config import DEFAULTS, KEYS, SweepError, expand, normalise
 from experiments.sweeping.output import format_rows, write_csv, write_figures
 
@@ -79,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(contract 2's format; Kuka: the final states, contract 4) to "
                         "DIR/config_NNN.npz")
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    processes.add_process_flags(p)
     return p
 
 
@@ -107,6 +109,7 @@ def main(argv=None) -> dict:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    processes.start(parser, args)
     given = {k: getattr(args, k) for k in KEYS if getattr(args, k) is not None}
     cli.check_output_file(parser, "--json", args.json)
     cli.check_output_file(parser, "--csv", args.csv, suffix=".csv")
@@ -124,16 +127,27 @@ def main(argv=None) -> dict:
             runner.reader(config, i)
         except SweepError as e:
             parser.error(str(e))
+    parts = resume.directory(args)
+    done = resume.finished(parts, configs, args.trajectories)
+    if done:
+        print(f"resuming: {len(done)} of {len(configs)} configurations already finished "
+              f"({parts}; delete it to start over)")
     rows = []
     outer = bar(total=len(configs), desc="configurations", unit="cfg", file=sys.stderr,
-                disable=args.no_progress, leave=True, position=0)
+                disable=args.no_progress, leave=True, position=0, initial=len(done))
     for i, config in enumerate(configs):
-        rows.append(runner.run(config, i, args.trajectories))
-        outer.update(1)
+        if i not in done:
+            rows.append(runner.run(config, i, args.trajectories))
+            resume.save(parts, i, config, rows[-1])
+            outer.update(1)
+        else:
+            rows.append(done[i])
     outer.close()
     result = {"experiment": "sweep", "episodes": int(sum(c["episodes"] for c in configs)),
               "seed": configs[0]["seed"], "devices": runner.devices,
               "machine": harness.machine(), "rows": rows}
+    if not processes.writes():
+        return result  # process 0 prints and writes
     print(format_rows(rows))
     if args.json:
         cli.write_json(args.json, result)
@@ -143,6 +157,7 @@ def main(argv=None) -> dict:
     if args.figures:
         for path in write_figures(args.figures, rows):
             print(f"wrote {path}")
+    resume.clear(parts)
     return result
 
 

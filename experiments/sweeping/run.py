@@ -19,7 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.gridworld import eval as ge, spec as gs
+from diffplan.distributed import gather
 from experiments.harness import core as harness
+from experiments.harness.cli import atomic_file
+from experiments.harness.processes import writes
 from experiments.kuka import eval as ke, spec as ks
 from experiments.sweeping.config import (SweepError, default_checkpoint, planner_config, spec_of,
                                          world)
@@ -111,7 +114,7 @@ class Runner:
             trajectories, f"config_{index:03d}.npz"))
         checkpoint = _checkpoint(config)
         row.update(compile_seconds=compile_seconds, wall_seconds=seconds + compile_seconds,
-                   devices=self.devices if world(config) == "gridworld" else 1,
+                   devices=self.devices,
                    **{k: v for k, v in config.items() if k != "checkpoint"},
                    checkpoint=checkpoint and os.path.relpath(checkpoint, harness.REPO_ROOT))
         return row
@@ -162,7 +165,7 @@ class Runner:
                 task, config["modes"], slots).lower(planner, jnp.int32(0), keys,
                                                     chunk).compile())
             t0 = time.time()
-            out = jax.device_get(compiled(planner, jnp.int32(token * PARTS), keys, chunk))
+            out = gather(compiled(planner, jnp.int32(token * PARTS), keys, chunk))
             seconds = time.time() - t0
         finally:
             RELAY.detach(token)
@@ -174,8 +177,9 @@ class Runner:
             ("overlap", checkpoint, config["task"], n, seed),
             lambda: ge.training_overlap(checkpoint, spec.setting, episodes))[0]
         out, episodes = ge.select(out, keep), ge.select(episodes, keep)
-        if trajectories:
-            ge.write_trajectories(trajectories, out, episodes, spec.grid_config())
+        if trajectories and writes():
+            atomic_file(trajectories, lambda tmp: ge.write_trajectories(
+                tmp, out, episodes, spec.grid_config()))
         row = ge.metrics_row(gs.method_name(config["modes"], config["language"]), out,
                              episodes, seconds, spec.grid_config().has_reference)
         row["excluded_training_episodes"] = int((~keep).sum())
@@ -196,13 +200,15 @@ class Runner:
                                      lambda: ke.generate_episodes(spec, n, seed, batch))
         reader = self.reader(config, index)
         planner = Planner(den, planner_config(config))
-        first = jax.tree.map(lambda x: x[np.zeros(batch, int)], episodes)
-        keys = harness.planner_keys(seed, np.zeros(batch, int))
+        calls = batch * self.devices  # run_planner: batch episodes per device and call
+        first = jax.tree.map(lambda x: x[np.zeros(calls, int)], episodes)
+        keys = harness.planner_keys(seed, np.zeros(calls, int))
         cache_key = (task, planner.config, batch, jax.tree.structure(planner),
                      tuple((x.shape, str(x.dtype)) for x in jax.tree.leaves(planner)))
-        compiled, compile_seconds = self._cached(cache_key, lambda: jax.jit(
-            lambda p, k, e, token: rollout(task, p, k, e)).lower(
-                planner, keys, first, 0).compile())
+        program = (harness.rollout_fn(task, mesh=self.mesh) if self.devices > 1 else jax.jit(
+            lambda p, k, e, token: rollout(task, p, k, e)))
+        compiled, compile_seconds = self._cached(
+            cache_key, lambda: program.lower(planner, keys, first, 0).compile())
         bar = self._bar(config, index)
         t0 = time.time()
         try:
@@ -211,8 +217,8 @@ class Runner:
         finally:
             bar.close()
         seconds = time.time() - t0
-        if trajectories:
-            ke.write_states(trajectories, [(episodes, final)])
+        if trajectories and writes():
+            atomic_file(trajectories, lambda tmp: ke.write_states(tmp, [(episodes, final)]))
         method = ks.label(config["modes"], spec.multi, spec.language, "planner",
                           reader is not None)
         row = ke.column_metrics(method, "multi" if spec.multi else "single", episodes, final,
