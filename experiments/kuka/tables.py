@@ -24,9 +24,9 @@ LEGEND = (
     ("SPL", "success x placements needed / placements made, 0-1"),
     ("calls", "denoiser calls per episode"),
     ("sec", "wall seconds of the row over all its seeds, physics and settling included; the "
-            "planner's programs are compiled before timing (not counted), while the first "
-            "column run also compiles the settling step, and a baseline's or the expert's "
-            "first column its own program"))
+            "planner's programs are compiled before timing (not counted), but the first column "
+            "the process runs also compiles the settling step, and a baseline's or the "
+            "expert's first column its own program"))
 """The columns' legend. `sec`: experiments.kuka.cli compiles every planning mode's program
 (harness.compiling.compiled_planners) before its timers start; env.settle_batch, the reader's
 restate_jit, harness.core.policy_runner and expert.run_expert compile on their first call."""
