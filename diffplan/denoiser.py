@@ -16,6 +16,15 @@ Grid representation (``DenoiserConfig.grid_repr``):
                 id / (vocab_size - 1) in [0, 1]; cells are not embedded (the text encoder then
                 owns its own table, params ``text_encoder/token_embed``).
 The UNet cross-attends to the text encoder's output with the instruction's padding mask.
+
+Instruction input (``DenoiserConfig.context_dim``):
+  0          -- "tokens" are int32 (B, L) word ids of the world's vocabulary (every shipped
+                checkpoint before the pretrained text encoder);
+  D > 0      -- "tokens" are float32 (B, L, D) token features of a frozen pretrained text
+                encoder (``diffplan.instruction``), zero at padding; the text encoder projects
+                them (Dense + LayerNorm, then its ``text_layers`` layers). With grid_repr
+                "embed" the ``token_embed`` table then embeds grid cells only (its
+                ``vocab_size`` rows are the world's cell tokens; no word shares them).
 """
 from __future__ import annotations
 
@@ -38,7 +47,7 @@ __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "ini
 
 GRID_REPRS = ("embed", "class_id")
 _TUPLE_FIELDS = ("widths", "attn_levels", "cross_attn_levels")
-_LATER_FIELDS = {"sentence_end_id": -1, "token_classes": 0}
+_LATER_FIELDS = {"sentence_end_id": -1, "token_classes": 0, "context_dim": 0}
 """DenoiserConfig fields newer than some checkpoints, and the default that means "absent"."""
 PREDICTIONS = ("eps", "x0")
 """What a network predicts for the generated channels: the noise, or the clean plan x0."""
@@ -71,6 +80,11 @@ class DenoiserConfig:
         auxiliary loss where a batch labels tokens (``diffplan.losses.token_loss``), so the
         features the UNet cross-attends to must carry what the labels say. Planning never
         calls it.
+      context_dim: 0 (the instruction is token ids), or D > 0: the instruction is the token
+        features (B, L, D) of a frozen pretrained text encoder (``diffplan.instruction``),
+        projected to ``text_dim`` (vocab_size then counts the grid's cell tokens only).
+        Token labels (token_classes) and per-sentence positions (sentence_end_id) read token
+        ids and are refused with it.
     """
 
     vocab_size: int = 64
@@ -91,6 +105,7 @@ class DenoiserConfig:
     mid_block: bool = False
     sentence_end_id: int = -1
     token_classes: int = 0
+    context_dim: int = 0
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -126,6 +141,13 @@ class DenoiserConfig:
             raise ValueError(f"sentence_end_id must be -1 or a token id in [0, vocab_size="
                              f"{self.vocab_size}), got {self.sentence_end_id!r}")
         positive("token_classes", 0)
+        positive("context_dim", 0)
+        if self.context_dim and self.token_classes:
+            raise ValueError("token_classes labels word tokens: a denoiser on pretrained "
+                             "features (context_dim > 0) has none; use token_classes=0")
+        if self.context_dim and self.sentence_end_id >= 0:
+            raise ValueError("sentence_end_id numbers word tokens per sentence: a denoiser on "
+                             "pretrained features (context_dim > 0) has none; use -1")
         if not isinstance(self.mid_block, bool):
             raise ValueError(f"mid_block must be a bool, got {self.mid_block!r}")
         # UNet checks: widths, groups, levels, head_dim.
@@ -170,8 +192,9 @@ class DenoiserConfig:
 class Denoiser(nn.Module):
     """eps-prediction network for the generated channels.
 
-    Call: x_t (B, H, W, C+G) float32, t (B,) int32, tokens (B, L) int32 (0 = padding)
-      -> eps (B, H, W, G) float32.
+    Call: x_t (B, H, W, C+G) float32, t (B,) int32, tokens (B, L) int32 (0 = padding), or
+      with ``config.context_dim`` = D pretrained token features (B, L, D) float32 (0 =
+      padding) -> eps (B, H, W, G) float32.
     H and W must be multiples of ``config.min_size_multiple``; L <= config.max_tokens.
     Parameters: ``token_embed`` (only for grid_repr "embed": shared by cells and words),
     ``text_encoder``, ``unet``, and ``token_head`` when ``config.token_classes`` > 0.
@@ -190,8 +213,9 @@ class Denoiser(nn.Module):
         self.text_encoder = TextEncoder(vocab_size=cfg.vocab_size, max_tokens=cfg.max_tokens,
                                         dim=cfg.text_dim, num_layers=cfg.text_layers,
                                         num_heads=cfg.text_heads, embed_dim=cfg.embed_dim,
-                                        embed=shared,
-                                        sentence_end_id=int(cfg.sentence_end_id))
+                                        embed=None if cfg.context_dim else shared,
+                                        sentence_end_id=int(cfg.sentence_end_id),
+                                        context_dim=int(cfg.context_dim))
         self.unet = cfg.unet()
         if cfg.token_classes:
             self.token_head = nn.Dense(cfg.token_classes)
@@ -233,8 +257,11 @@ class Denoiser(nn.Module):
         t = jnp.asarray(t)
         if t.shape != (b,):
             raise ValueError(f"t must have shape (B,) = ({b},), got {t.shape}")
-        if tokens.ndim != 2 or tokens.shape[0] != b:
-            raise ValueError(f"tokens must have shape (B={b}, L), got {tokens.shape}")
+        want = 3 if cfg.context_dim else 2
+        if tokens.ndim != want or tokens.shape[0] != b:
+            what = f"(B={b}, L, {cfg.context_dim}) pretrained features" if cfg.context_dim \
+                else f"(B={b}, L) token ids"
+            raise ValueError(f"tokens must be {what}, got shape {tokens.shape}")
         x_t = x_t.astype(jnp.float32)
         context, mask = self.text_encoder(tokens)
         if self.config.token_classes and self.is_initializing():
@@ -256,7 +283,8 @@ def init_params(model: Denoiser, key: jax.Array, height: int = 16, width: int = 
     num_tokens = cfg.max_tokens if num_tokens is None else num_tokens
     x = jnp.zeros((batch_size, height, width, cfg.num_channels), jnp.float32)
     t = jnp.zeros((batch_size,), jnp.int32)
-    tokens = jnp.ones((batch_size, num_tokens), jnp.int32)
+    tokens = (jnp.ones((batch_size, num_tokens, cfg.context_dim), jnp.float32)
+              if cfg.context_dim else jnp.ones((batch_size, num_tokens), jnp.int32))
     return fast_init(model, key, x, t, tokens)
 
 
@@ -268,7 +296,8 @@ def make_denoise_fn(model: Denoiser, params, tokens: jax.Array, prediction: str 
     Args:
       model: a ``Denoiser``.
       params: its variables ({"params": ...}) or the bare params tree.
-      tokens: (B, L) int32 instruction tokens (B = 1 broadcasts to the plan batch).
+      tokens: (B, L) int32 instruction tokens, or (B, L, D) float32 features for a denoiser
+        with context_dim D (B = 1 broadcasts to the plan batch).
       prediction: what the network predicts, "eps" or "x0" (then ``schedule`` is needed to
         turn its clean-plan estimate into the noise the sampler expects).
       schedule: the schedule the network was trained with (prediction "x0" only).
@@ -366,7 +395,8 @@ class LoadedDenoiser(struct.PyTreeNode):
     def eps_fn(self, tokens: jax.Array) -> Callable[[jax.Array, jax.Array], jax.Array]:
         """The ``denoise_fn(x_t (B, H, W, C+G), t (B,)) -> eps (B, H, W, C+G)`` that
         ``diffplan.sample`` expects (zeros on the condition channels), whatever the network
-        predicts. tokens: int32 (B, L) (B = 1 broadcasts)."""
+        predicts. tokens: int32 (B, L), or float32 (B, L, D) features for a denoiser with
+        context_dim D (B = 1 broadcasts)."""
         def denoise_fn(x_t, t):
             toks = jnp.broadcast_to(tokens, (x_t.shape[0],) + tokens.shape[1:])
             out = self.apply_fn(self.params, x_t, t, toks)
@@ -394,7 +424,6 @@ def load_denoiser(directory: str, step: int | None = None) -> LoadedDenoiser:
     Denoiser)."""
     from diffplan.checkpoint import load_params_for_eval, resolve_checkpoint
     from diffplan.schedule import cosine_schedule
-    import diffplan.baselines.goal  # noqa: F401  registers GoalClassifier, a Denoiser
 
     directory = resolve_checkpoint(directory)
     params, metadata = load_params_for_eval(directory, step=step)  # arrays and JSON only

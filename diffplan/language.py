@@ -30,11 +30,16 @@ with :meth:`TemplateSplit.languages`): ``canonical`` in each sentence's template
 wording); ``paraphrased`` in a uniformly drawn training paraphrase (never template 0);
 ``unseen`` in a uniformly drawn held-out phrasing that no training batch ever contains (every
 word of it occurs in a training phrasing: new wording, not new words)."""
-NEVER_TRAINED = (UNSEEN, DEVELOPMENT, HELDOUT)
+NATURAL = "natural"
+"""The sealed natural-language test sets (``envs/<world>/natural.py``): sentences as people type
+them, never trained on and never chosen on; only a denoiser on pretrained text features
+(``diffplan.instruction``) can read them."""
+NEVER_TRAINED = (UNSEEN, DEVELOPMENT, HELDOUT, NATURAL)
 """Languages no training batch ever draws: a split's :attr:`TemplateSplit.unseen` phrasings,
 named ``unseen`` (the grid world) or ``development`` (phrasings that were looked at to choose
 things, so their rows are development numbers: the Kuka world), and its sealed held-out
-phrasings (:attr:`TemplateSplit.sealed`, the language ``heldout``)."""
+phrasings (:attr:`TemplateSplit.sealed`, the language ``heldout``), and the sealed
+natural-language sets (:data:`NATURAL`)."""
 TRAINING = "mixed"
 """The phrasing of training examples (not an evaluation language): canonical half of the time,
 otherwise a uniformly drawn training paraphrase (:meth:`TemplateSplit.pool`)."""

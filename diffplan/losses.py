@@ -42,7 +42,9 @@ class Batch(NamedTuple):
 
     Attributes:
       x0: float32 (B, H, W, C + G), the clean planning tensor (conditions, then generated).
-      tokens: int32 (B, L), instruction token ids, 0 = padding.
+      tokens: int32 (B, L), instruction token ids, 0 = padding; or float32 (B, L, D), a
+        pretrained text encoder's token features, 0 = padding (a denoiser with
+        ``DenoiserConfig.context_dim`` D; ``diffplan.instruction``).
       loss_mask: float32 (B, H, W, G), weight of each generated entry in the loss.
       token_labels: None, or int32 (B, L): a class in [0, K) for each token (any value where
         its weight is 0), K the denoiser's ``token_classes``.
@@ -68,8 +70,9 @@ def check_batch(batch: Batch, num_gen_channels: int) -> None:
     if not 0 < num_gen_channels <= CG:
         raise ValueError(f"num_gen_channels={num_gen_channels} must be in [1, {CG}] "
                          f"(x0 has {CG} channels)")
-    if len(tokens.shape) != 2 or tokens.shape[0] != B:
-        raise ValueError(f"Batch.tokens must be (B={B}, L), got shape {tuple(tokens.shape)}")
+    if len(tokens.shape) not in (2, 3) or tokens.shape[0] != B:
+        raise ValueError(f"Batch.tokens must be (B={B}, L) token ids or (B={B}, L, D) "
+                         f"features, got shape {tuple(tokens.shape)}")
     if tuple(mask.shape) != (B, H, W, num_gen_channels):
         raise ValueError(f"Batch.loss_mask must be {(B, H, W, num_gen_channels)}, got "
                          f"{tuple(mask.shape)}")
@@ -78,9 +81,9 @@ def check_batch(batch: Batch, num_gen_channels: int) -> None:
         raise ValueError("Batch.token_labels and Batch.token_weights come together: give both "
                          "or neither")
     for name, value in (("token_labels", labels), ("token_weights", weights)):
-        if value is not None and tuple(value.shape) != tuple(tokens.shape):
-            raise ValueError(f"Batch.{name} must have the tokens' shape {tuple(tokens.shape)}, "
-                             f"got {tuple(value.shape)}")
+        if value is not None and tuple(value.shape) != tuple(tokens.shape[:2]):
+            raise ValueError(f"Batch.{name} must have the tokens' shape "
+                             f"{tuple(tokens.shape[:2])}, got {tuple(value.shape)}")
 
 
 def with_token_labels(batch: Batch, labels: jax.Array, labelled: jax.Array,
@@ -105,6 +108,23 @@ def draw_timesteps(key: jax.Array, batch_size: int, num_timesteps: int,
     u = jax.random.uniform(key, (batch_size,), jnp.float32)
     t = jnp.floor(num_timesteps * u ** (1.0 / power)).astype(jnp.int32)
     return jnp.clip(t, 0, num_timesteps - 1)
+
+
+def with_sentences(batch: Batch, sentences=None) -> Batch:
+    """The batch as the network reads it: unchanged without a sentence table; with one
+    (``diffplan.instruction.SentenceTable``), ``batch.tokens`` holds sentence ids int (B, S)
+    (-1 = absent) and becomes their assembled features float32 (B, L, D)."""
+    if sentences is None:
+        return batch
+    from diffplan.instruction import assemble_batch
+
+    return batch._replace(tokens=assemble_batch(sentences, batch.tokens))
+
+
+def instruction_input(tokens):
+    """What the network reads of Batch.tokens: int32 token ids (B, L), or float32 features
+    (B, L, D) as they are."""
+    return tokens.astype(jnp.float32 if tokens.ndim == 3 else jnp.int32)
 
 
 def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
@@ -138,7 +158,7 @@ def diffusion_loss(params, apply_fn: Callable, batch: Batch, key: jax.Array,
     ab = alphas_cumprod[t][:, None, None, None]
     x_gen = jnp.sqrt(ab) * x0[..., C:] + jnp.sqrt(1.0 - ab) * eps
     x_t = jnp.concatenate([x0[..., :C], x_gen], axis=-1)
-    pred = apply_fn({"params": params}, x_t, t, tokens.astype(jnp.int32))
+    pred = apply_fn({"params": params}, x_t, t, instruction_input(tokens))
     if pred.shape != eps.shape:
         raise ValueError(f"model output shape {pred.shape} != generated-channel shape "
                          f"{eps.shape}")
@@ -181,7 +201,7 @@ def goal_loss(params, logits_fn: Callable, batch: Batch):
     g_all = loss_mask.shape[-1]
     c = x0.shape[-1] - g_all
     logits = logits_fn({"params": params}, x0, jnp.zeros(x0.shape[:1], jnp.int32),
-                       tokens.astype(jnp.int32)).astype(jnp.float32)
+                       instruction_input(tokens)).astype(jnp.float32)
     b = x0.shape[0]
     total, hits, count = 0.0, 0.0, 0.0
     for g in range(1, g_all):
@@ -282,14 +302,15 @@ def make_train_step(model, config: TrainConfig, *, mesh=None, alphas_cumprod=Non
 
 
 @functools.partial(jax.jit, static_argnames=("model", "config", "batch_fn", "mesh"))
-def _val_loss(params, val_root, alphas_cumprod, *, model, config, batch_fn, mesh):
+def _val_loss(params, sentences, val_root, alphas_cumprod, *, model, config, batch_fn, mesh):
     """Mean loss of ``params`` over ``config.val_batches`` batches with fixed keys (timesteps
     drawn uniformly whatever ``config.timestep_power``: the paper's objective, comparable
-    across recipes)."""
-
+    across recipes); sentence ids assembled from ``sentences`` when given
+    (:func:`with_sentences`)."""
     def body(total, j):
         batch_key, loss_key = jax.random.split(jax.random.fold_in(val_root, j))
-        batch = shd.constrain_batch(Batch(*batch_fn(batch_key, config.batch_size)), mesh)
+        batch = with_sentences(Batch(*batch_fn(batch_key, config.batch_size)), sentences)
+        batch = shd.constrain_batch(batch, mesh)
         loss, _ = diffusion_loss(params, model.apply, batch, loss_key, alphas_cumprod,
                                  config.num_gen_channels, config.prediction)
         return total + loss, None
@@ -300,10 +321,13 @@ def _val_loss(params, val_root, alphas_cumprod, *, model, config, batch_fn, mesh
 
 def make_val_loss(model, config: TrainConfig, batch_fn: Callable, val_root: jax.Array, *,
                   mesh) -> Callable:
-    """``val_loss(params) -> scalar``: the mean loss over ``config.val_batches`` batches of
-    ``batch_fn`` whose keys are fixed by ``val_root`` (batch j: ``fold_in(val_root, j)``)."""
+    """``val_loss(params, sentences=None) -> scalar``: the mean loss over
+    ``config.val_batches`` batches of ``batch_fn`` whose keys are fixed by ``val_root`` (batch
+    j: ``fold_in(val_root, j)``); ``sentences``: the sentence table of a batch_fn that draws
+    sentence ids (``diffplan.train.train``)."""
     cfg = dataclasses.replace(_compute_cfg(config), val_batches=config.val_batches)
-    return functools.partial(
+    loss = functools.partial(
         _val_loss, val_root=shd.replicate(val_root, mesh),
         alphas_cumprod=shd.replicate(_alphas_cumprod(config), mesh), model=model, config=cfg,
         batch_fn=hashable(batch_fn, "val_batch_fn"), mesh=mesh)
+    return lambda params, sentences=None: loss(params, sentences)

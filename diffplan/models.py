@@ -76,10 +76,12 @@ def config_from_dict(cls: type, d: Mapping[str, Any]) -> Any:
 def denoiser_inputs(input_shapes: Mapping[str, Sequence[int]]) -> tuple:
     """The inputs of a network called like the Denoiser, ``(x_t, t, tokens)``, from the
     stored ``input_shapes`` ``{"x": [B, H, W, C+G], "tokens": [B, L]}``: float32 x, int32 t
-    (B,), int32 tokens (as ``jax.ShapeDtypeStruct``)."""
+    (B,), int32 tokens (as ``jax.ShapeDtypeStruct``); tokens ``[B, L, D]`` are pretrained
+    features, float32."""
     x = tuple(int(d) for d in input_shapes["x"])
+    tokens = tuple(int(d) for d in input_shapes["tokens"])
     return (jax.ShapeDtypeStruct(x, jnp.float32), jax.ShapeDtypeStruct(x[:1], jnp.int32),
-            jax.ShapeDtypeStruct(tuple(int(d) for d in input_shapes["tokens"]), jnp.int32))
+            jax.ShapeDtypeStruct(tokens, jnp.float32 if len(tokens) == 3 else jnp.int32))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -165,7 +165,8 @@ class PlannerState(struct.PyTreeNode):
     """What the planner carries from one move to the next, for one episode (leading batch
     axes when vmapped).
 
-    key: the episode's PRNG key. tokens: int32 (L,) the instruction.
+    key: the episode's PRNG key. tokens: int32 (L,) the instruction (or float32 (L, D) its
+      pretrained features, for a denoiser with ``DenoiserConfig.context_dim`` D).
     plan: float32 (H, W, G) the current plan (zeros before the first).
     condition: float32 (H, W, C) the condition it was made from (zeros before the first).
     move: int32 () calls of ``plan`` so far (moves). calls: int32 () denoiser calls spent.
@@ -239,14 +240,24 @@ class Planner(struct.PyTreeNode):
         return self.denoiser.plan_shape
 
     def init(self, key: jax.Array, tokens: jax.Array) -> PlannerState:
-        """The state of a new episode: key, a PRNG key (the episode's); tokens int32 (L,)."""
+        """The state of a new episode: key, a PRNG key (the episode's); tokens int32 (L,), the
+        instruction's token ids, or for a denoiser on pretrained features
+        (``DenoiserConfig.context_dim`` D > 0) their float32 (L, D) features
+        (``diffplan.instruction``: computed once per episode, kept in the state)."""
         tokens = jnp.asarray(tokens)
-        if tokens.ndim != 1:
+        config = getattr(self.denoiser, "model_config", None)
+        dim = int(getattr(config, "context_dim", 0) or 0)
+        features = tokens.ndim == 2
+        if dim and not (features and tokens.shape[-1] == dim):
+            raise ValueError(f"this denoiser reads pretrained features (L, {dim}) (one "
+                             f"episode; vmap for a batch), got shape {tokens.shape}")
+        if not dim and not (tokens.ndim == 1 or (features and config is None)):
             raise ValueError(f"tokens must be int32 (L,) (one episode; vmap for a batch), got "
                              f"shape {tokens.shape}")
         zero = jnp.zeros((), jnp.int32)
         h, w, _ = self.plan_shape
-        return PlannerState(key=key, tokens=tokens.astype(jnp.int32),
+        return PlannerState(key=key, tokens=tokens.astype(jnp.float32 if features
+                                                          else jnp.int32),
                             plan=jnp.zeros(self.plan_shape, jnp.float32),
                             condition=jnp.zeros((h, w, self.denoiser.num_cond_channels),
                                                 jnp.float32),

@@ -1,4 +1,5 @@
-"""A small pre-norm transformer encoder over instruction token ids (Flax linen).
+"""A small pre-norm transformer encoder over instruction token ids (Flax linen), or over a
+frozen pretrained encoder's token features (``context_dim > 0``).
 
 Token id 0 is padding. The token-embedding table can be owned by the encoder or handed in
 (``embed=...``), so that the denoiser's single ``nn.Embed`` embeds both the grid cells
@@ -16,6 +17,11 @@ Positions: absolute (token i gets position i, the default), or per sentence when
 from the start of its sentence, and a learned embedding of the sentence's index is added. Then
 the embedding of a sentence's words does not depend on how long the sentences before it are,
 so a sentence reads the same wherever a multi-sentence instruction puts it.
+
+Pretrained features (``context_dim = D > 0``): the input is float32 (B, L, D) token features
+(``diffplan.instruction``), zero at padding; the mask is ``any(features != 0)``, and each token
+is projected by a trainable Dense to ``dim`` and LayerNormed (params ``context_proj``,
+``context_ln``) before the positions and layers, in place of the token table.
 
 Sentence-local reading (``sentence_local=True``, with ``sentence_end_id``): every token attends
 only to the tokens of its own sentence and no sentence-index embedding is added, so a sentence's
@@ -84,8 +90,10 @@ class TextEncoder(nn.Module):
         (:func:`sentence_positions`).
       sentence_local: attention stays within each sentence and the sentence-index table is
         left out (requires sentence_end_id >= 0).
+      context_dim: 0 (token ids), or D: the input is pretrained token features (B, L, D).
 
-    Call: tokens (B, L) int32 -> (features (B, L, dim) float32, mask (B, L) bool).
+    Call: tokens (B, L) int32 (or features (B, L, context_dim) float32) -> (features (B, L,
+    dim) float32, mask (B, L) bool).
     """
 
     vocab_size: int
@@ -97,29 +105,18 @@ class TextEncoder(nn.Module):
     embed: Optional[nn.Module] = None
     sentence_end_id: int = -1
     sentence_local: bool = False
+    context_dim: int = 0
 
     @nn.compact
     def __call__(self, tokens: jax.Array) -> tuple[jax.Array, jax.Array]:
         if self.dim % self.num_heads:
             raise ValueError(f"text dim={self.dim} is not divisible by num_heads={self.num_heads}")
-        if tokens.ndim != 2:
-            raise ValueError(f"tokens must have shape (B, L), got {tokens.shape}")
-        b, length = tokens.shape
-        if length > self.max_tokens:
-            raise ValueError(f"instruction length L={length} exceeds max_tokens={self.max_tokens}")
-        if not jnp.issubdtype(tokens.dtype, jnp.integer):
-            raise ValueError(f"tokens must be integer ids, got dtype {tokens.dtype}")
-        if self.sentence_local and self.sentence_end_id < 0:
-            raise ValueError("sentence_local needs sentence_end_id (the token ending a sentence)")
-        tokens = tokens.astype(jnp.int32)
-        mask = tokens != 0
+        if self.context_dim and (self.sentence_end_id >= 0 or self.sentence_local):
+            raise ValueError("per-sentence positions read token ids (sentence_end_id): not "
+                             "with pretrained features (context_dim > 0)")
+        x, mask = (self._project_features if self.context_dim else self._embed_tokens)(tokens)
+        length = tokens.shape[1]
         attend = mask
-        table = self.embed
-        if table is None:
-            table = nn.Embed(self.vocab_size, self.embed_dim or self.dim, name="token_embed")
-        x = table(tokens)
-        if x.shape[-1] != self.dim:
-            x = nn.Dense(self.dim, name="embed_proj")(x)
         pos = self.param("pos_embed", nn.initializers.normal(0.02), (self.max_tokens, self.dim))
         if self.sentence_end_id < 0:
             x = x + pos[None, :length]
@@ -136,4 +133,38 @@ class TextEncoder(nn.Module):
         for i in range(self.num_layers):
             x = TextEncoderLayer(self.num_heads, name=f"layer{i}")(x, attend)
         x = nn.LayerNorm(name="ln_final")(x)
+        return x, mask
+
+    def _embed_tokens(self, tokens):
+        """(embedded tokens (B, L, dim), mask) of token ids (B, L)."""
+        if tokens.ndim != 2:
+            raise ValueError(f"tokens must have shape (B, L), got {tokens.shape}")
+        if tokens.shape[1] > self.max_tokens:
+            raise ValueError(f"instruction length L={tokens.shape[1]} exceeds "
+                             f"max_tokens={self.max_tokens}")
+        if not jnp.issubdtype(tokens.dtype, jnp.integer):
+            raise ValueError(f"tokens must be integer ids, got dtype {tokens.dtype} (this "
+                             "encoder reads token ids, not pretrained features)")
+        if self.sentence_local and self.sentence_end_id < 0:
+            raise ValueError("sentence_local needs sentence_end_id (the token ending a sentence)")
+        tokens = tokens.astype(jnp.int32)
+        table = self.embed
+        if table is None:
+            table = nn.Embed(self.vocab_size, self.embed_dim or self.dim, name="token_embed")
+        x = table(tokens)
+        if x.shape[-1] != self.dim:
+            x = nn.Dense(self.dim, name="embed_proj")(x)
+        return x, tokens != 0
+
+    def _project_features(self, features):
+        """(projected features (B, L, dim), mask) of pretrained token features (B, L, D)."""
+        if features.ndim != 3 or features.shape[-1] != self.context_dim:
+            raise ValueError(f"this encoder reads pretrained token features (B, L, "
+                             f"{self.context_dim}), got shape {features.shape}")
+        if features.shape[1] > self.max_tokens:
+            raise ValueError(f"instruction length L={features.shape[1]} exceeds "
+                             f"max_tokens={self.max_tokens}")
+        features = features.astype(jnp.float32)
+        mask = jnp.any(features != 0, axis=-1)
+        x = nn.LayerNorm(name="context_ln")(nn.Dense(self.dim, name="context_proj")(features))
         return x, mask

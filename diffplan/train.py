@@ -25,12 +25,14 @@ import warnings
 from typing import Any, Callable, Mapping, NamedTuple, Optional
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from diffplan import checkpoint as ckpt
 from diffplan import distributed
 from diffplan import sharding as shd
-from diffplan.losses import Batch, check_batch, diffusion_loss, make_train_step, make_val_loss
+from diffplan.losses import (Batch, check_batch, diffusion_loss, make_train_step, make_val_loss,
+                             with_sentences)
 from diffplan.train_state import (PREDICTIONS, TrainConfig, TrainState, hashable,
                                   init_train_state, lr_schedule, make_optimizer, root_keys,
                                   step_key)
@@ -409,11 +411,26 @@ def _append_record(path: str, record: dict, last_ckpt: Optional[int]) -> None:
 
 # ------------------------------------------------------------------------------- the denoiser
 
+def with_sentence_shapes(init_batch: Batch, sentences=None) -> Batch:
+    """The shapes of the batch the network reads (:func:`with_sentences`): unchanged without a
+    sentence table; with one, tokens (B, S) sentence ids become float32 (B, L, D)."""
+    init_batch = Batch(*init_batch)
+    if sentences is None:
+        return init_batch
+    if len(init_batch.tokens.shape) != 2:
+        raise ValueError("with a sentence table, batch_fn's tokens are sentence ids (B, S), got "
+                         f"shape {tuple(init_batch.tokens.shape)}")
+    return init_batch._replace(tokens=jax.ShapeDtypeStruct(
+        (init_batch.tokens.shape[0], sentences.max_tokens, sentences.dim), jnp.float32))
+
+
 @functools.partial(jax.jit, static_argnames=("batch_fn", "batch_size", "mesh"))
-def draw_batch(key, *, batch_fn, batch_size, mesh):
-    """(batch, loss key) of a step from its key: ``batch_fn(batch key, batch_size)``."""
+def draw_batch(key, sentences=None, *, batch_fn, batch_size, mesh):
+    """(batch, loss key) of a step from its key: ``batch_fn(batch key, batch_size)``, its
+    sentence ids assembled from ``sentences`` (an argument, not a constant) when given."""
     batch_key, loss_key = jax.random.split(key)
-    batch = shd.constrain_batch(Batch(*batch_fn(batch_key, batch_size)), mesh)
+    batch = with_sentences(Batch(*batch_fn(batch_key, batch_size)), sentences)
+    batch = shd.constrain_batch(batch, mesh)
     return batch, shd.constrain_replicated(loss_key, mesh)
 
 
@@ -429,7 +446,8 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
           init_batch: Optional[Batch] = None, progress: bool = True,
           extra_metadata: Optional[Mapping[str, Any]] = None,
           val_batch_fn: Optional[Callable] = None, mesh=None, tensorboard: bool = True,
-          callback: Optional[Callable[[int, dict], None]] = None) -> TrainResult:
+          callback: Optional[Callable[[int, dict], None]] = None,
+          sentences=None) -> TrainResult:
     """Trains the denoiser ``model`` through ``fit`` (resuming from ``out_dir``).
 
     Args:
@@ -451,6 +469,11 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
       mesh: a ``diffplan.sharding.data_mesh`` (default: all devices).
       tensorboard: also log to ``out_dir/tb`` if tensorboardX is importable.
       callback: as for ``fit``.
+      sentences: None, or a ``diffplan.instruction.SentenceTable`` (a denoiser on pretrained
+        features, ``DenoiserConfig.context_dim`` > 0): ``batch_fn``'s ``tokens`` are then
+        sentence ids int32 (B, S) (-1 = absent), assembled into features (B, L, D) inside the
+        jitted step (``diffplan.instruction.assemble``); the table is the step's data
+        argument (``fit``'s ``data``), never a constant of the compiled program.
 
     Returns:
       ``TrainResult(state, final_loss, last_metrics)``.
@@ -468,7 +491,9 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
     init_key, _, val_root = root_keys(cfg.seed)
     if init_batch is None:
         init_batch = jax.eval_shape(lambda k: batch_fn(k, 1), init_key)
-    init_batch = Batch(*init_batch)
+    init_batch = with_sentence_shapes(Batch(*init_batch), sentences)
+    if sentences is not None:
+        sentences = shd.replicate(sentences, mesh)
     check_batch(jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype),
                                        init_batch), cfg.num_gen_channels)
     metadata = checkpoint_metadata(model, model_config, cfg, init_batch, extra_metadata)
@@ -478,18 +503,17 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
     train_step = make_train_step(model, cfg, mesh=mesh)
 
     def step(state, key, data):
-        del data
-        return train_step.placed(state, *draw(key))
+        return train_step.placed(state, *draw(key, data))
 
     validate = None
     if cfg.val_every > 0:
         val_loss = make_val_loss(model, cfg, val_batch_fn or batch_fn, val_root, mesh=mesh)
 
         def validate(state):
-            return {"val_loss": float(val_loss(state.ema_params))}
+            return {"val_loss": float(val_loss(state.ema_params, sentences))}
 
     result = fit(step, lambda: init_train_state(model, cfg, init_batch), steps=cfg.steps,
-                 seed=cfg.seed, out_dir=out_dir, metadata=metadata,
+                 seed=cfg.seed, out_dir=out_dir, metadata=metadata, data=sentences,
                  checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every,
                  progress=progress, jit=False, mesh=mesh, summarize=_denoiser_summary,
                  validate=validate, validate_every=cfg.val_every, callback=callback,

@@ -215,7 +215,9 @@ def hashable(obj, what: str):
 @functools.partial(jax.jit, static_argnames=("model", "x_shape", "tok_shape"))
 def _init_params(key, *, model, x_shape, tok_shape):
     x = jnp.zeros(x_shape, jnp.float32)
-    tok = jnp.zeros(tok_shape, jnp.int32)
+    # (B, L) token ids, or (B, L, D) pretrained features (ones: every token real).
+    tok = jnp.ones(tok_shape, jnp.float32) if len(tok_shape) == 3 else jnp.zeros(tok_shape,
+                                                                                jnp.int32)
     return model.init(key, x, jnp.zeros(x_shape[:1], jnp.int32), tok)
 
 

@@ -37,8 +37,10 @@ class GridConfig:
       max_steps: episode length in moves.
       language: how instructions are phrased (grammar.LANGUAGES): "canonical" (template 0),
         "paraphrased" (a training paraphrase), "unseen" (a held-out phrasing training never
-        sees), or "mixed" (training examples: canonical half of the time, else a training
-        paraphrase); grammar.SPLITS.
+        sees), "natural" (a sentence of the sealed natural-language set, envs.gridworld.natural:
+        only a denoiser on pretrained features reads it; the episode's tokens are the canonical
+        phrasing's), or "mixed" (training examples: canonical half of the time, else a
+        training paraphrase); grammar.SPLITS.
       paraphrase: the older spelling of language="paraphrased" (True sets it).
       num_classes: number of object classes used (<= len(grammar.OBJECT_NAMES)).
     """
@@ -64,7 +66,7 @@ class GridConfig:
             object.__setattr__(self, "language", "paraphrased")
             object.__setattr__(self, "paraphrase", False)
         try:
-            language.check_language(self.language)
+            language.check_language(self.language, languages=grammar.EVALUATION_LANGUAGES)
         except ValueError as e:
             errors.append(str(e))
         if self.setting not in SETTINGS:

@@ -50,7 +50,8 @@ def name_a_distractor(key, episode: Episode, visible0, setting: str):
     valid = cells.any() & (episode.reference_class > 0)
     named = episode.grid[cell[0], cell[1]].astype(jnp.int32)
     tokens = grammar.fill_template(
-        jnp.asarray(grammar.compile_templates(setting))[episode.template], named,
+        jnp.asarray(grammar.compile_templates(setting))[grammar.token_template(
+            episode.template)], named,
         episode.target_class, jnp.maximum(episode.direction, 0)).astype(episode.tokens.dtype)
     tokens = jnp.where(valid, tokens, episode.tokens)
     return episode.replace(tokens=tokens), cell, valid
@@ -61,8 +62,9 @@ def reverse_direction(episode: Episode, setting: str) -> Episode:
     unchanged where the setting has no direction."""
     direction = jnp.maximum(episode.direction, 0)
     tokens = grammar.fill_template(
-        jnp.asarray(grammar.compile_templates(setting))[episode.template],
-        episode.reference_class, episode.target_class, (direction + 4) % 8)
+        jnp.asarray(grammar.compile_templates(setting))[grammar.token_template(
+            episode.template)], episode.reference_class, episode.target_class,
+        (direction + 4) % 8)
     tokens = jnp.where(episode.direction >= 0, tokens.astype(episode.tokens.dtype),
                        episode.tokens)
     return episode.replace(tokens=tokens)

@@ -29,11 +29,17 @@ class Episode:
     agent, target, reference: int32 (2,) (row, col); reference is (-1, -1) without one.
     target_class, reference_class: int32 () 1-based classes (reference_class 0 without one).
     direction: int32 () compass sector 0..7 from reference to target (grammar.DIRECTIONS), -1 none.
-    template: int32 () index of the instruction template.
-    tokens: int32 (L,) the instruction's token ids (0 padded).
+    template: int32 () index of the instruction template (grammar.all_phrasings: 0-11 the
+      grammar's phrasings, from grammar.NUM_TEMPLATES on the natural-language set's).
+    tokens: int32 (L,) the instruction's token ids (0 padded); for a natural-language
+      template, the canonical phrasing's (its words are outside the vocabulary).
     expert_positions: int32 (max_steps + 1, 2) the expert path, padded by repeating the target.
     expert_length: int32 () number of moves of the expert path.
     expert_path: bool (H, W) the cells of the expert path, ends included.
+    features: None, or float32 (L, D) the instruction's pretrained text features
+      (``diffplan.instruction``), filled on the host before a rollout of a denoiser that
+      reads them (``envs.gridworld.sentences.with_features``; ``GridTask(text="features")``
+      hands them to the planner). Never generated inside jit.
     """
 
     grid: jax.Array
@@ -48,6 +54,7 @@ class Episode:
     expert_positions: jax.Array
     expert_length: jax.Array
     expert_path: jax.Array
+    features: jax.Array | None = None
 
 
 def chebyshev(a, b):
@@ -284,7 +291,8 @@ def generate(key, config: GridConfig) -> Episode:
         direction = jnp.int32(-1)
     templates = jnp.asarray(grammar.compile_templates(config.setting))
     template = language.draw_template(k_template, config.template_pool)
-    tokens = grammar.fill_template(templates[template], reference_class, target_class,
+    tokens = grammar.fill_template(templates[grammar.token_template(template)],
+                                   reference_class, target_class,
                                    jnp.maximum(direction, 0))
     valid = jnp.arange(config.max_steps + 1) <= length
     return Episode(

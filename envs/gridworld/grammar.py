@@ -82,12 +82,40 @@ p_mo2g_far "go to the reference first, the target lies <dir> of it" (the same to
 denoiser of one reads the other's instructions)."""
 
 UNSEEN_TEMPLATES = (8, 9, 10, 11)
+NUM_TEMPLATES = 12
+"""Phrasings per setting in :data:`TEMPLATES`; an episode's ``template`` at or past it indexes
+the sealed natural-language set (:func:`all_phrasings`)."""
 
 
 def phrasings(has_reference: bool) -> tuple[str, ...]:
     """The twelve phrasings (:data:`TEMPLATES`) of the settings with a reference (P-MO2G,
     P-MO2G-far) or without one (1O1G, MO1G): an episode's ``template`` indexes them."""
     return _VIA_REFERENCE if has_reference else _GOAL_ONLY
+
+
+def all_phrasings(has_reference: bool) -> tuple[str, ...]:
+    """What an episode's ``template`` indexes in every language: the twelve phrasings, then
+    the sealed natural-language set (``envs.gridworld.natural``, the language "natural":
+    templates NUM_TEMPLATES ...), whose slots also include ``{dir_h}`` (the direction
+    hyphenated). Their text only: natural sentences have words outside the vocabulary, so
+    only a denoiser on pretrained features reads them (their episodes' ``tokens`` hold the
+    canonical phrasing of the same meaning, which the slot readers (the baselines' goal
+    vector, the searcher) parse)."""
+    from envs.gridworld import natural
+
+    return phrasings(has_reference) + natural.sentences(has_reference)
+
+
+def render_phrasing(phrasing: str, ref_class: int, target_class: int, direction: int) -> str:
+    """A phrasing with its slots filled (1-based classes; ref_class 0 and direction -1 where
+    the setting has none): {ref}, {target}, {dir} and {dir_h} (hyphenated: "north-east")."""
+    from envs.gridworld import natural
+
+    word = DIRECTIONS[direction] if direction >= 0 else ""
+    return language.render(phrasing, {
+        "ref": OBJECT_NAMES[ref_class - 1] if ref_class > 0 else "",
+        "target": OBJECT_NAMES[target_class - 1], "dir": word,
+        "dir_h": natural.hyphenated(word)})
 
 
 SLOT_REF, SLOT_TARGET, SLOT_DIR = -1, -2, -3
@@ -101,12 +129,31 @@ SPLITS: dict[str, language.TemplateSplit] = {
 """Each setting's phrasings split into canonical, training paraphrases and held-out ones."""
 
 
+EVALUATION_LANGUAGES = LANGUAGES + (language.NATURAL,)
+"""The grid world's evaluation languages: canonical, paraphrased, unseen and the sealed
+natural-language set ("natural": read only by denoisers on pretrained features)."""
+
+
 def template_pool(setting: str, language_name: str) -> np.ndarray:
     """int32 (P,) the template indices an episode of the setting draws its phrasing from
-    (diffplan.language.TemplateSplit.pool)."""
+    (diffplan.language.TemplateSplit.pool; "natural": the natural set's sentences, templates
+    NUM_TEMPLATES ... of :func:`all_phrasings`)."""
     if setting not in SPLITS:
         raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(SPLITS)}")
+    if language_name == language.NATURAL:
+        from envs.gridworld import natural
+
+        count = len(natural.sentences(TEMPLATES[setting] is _VIA_REFERENCE))
+        return np.arange(NUM_TEMPLATES, NUM_TEMPLATES + count, dtype=np.int32)
     return SPLITS[setting].pool(language_name)
+
+
+def token_template(template):
+    """The template whose tokens an episode carries: its own, or for a natural-language one
+    (template >= NUM_TEMPLATES) the canonical template 0. jnp-compatible."""
+    import jax.numpy as jnp
+
+    return jnp.where(template < NUM_TEMPLATES, template, 0)
 
 
 def split_words(text: str) -> list[str]:
@@ -128,6 +175,9 @@ VOCAB: tuple[str, ...] = _VOCABULARY.words
 WORD_TO_ID: dict[str, int] = _VOCABULARY.word_to_id
 OBJECT_TOKEN_OFFSET = len(SPECIAL_TOKENS)
 """Token id of object class k (1-based) is ``k - 1 + OBJECT_TOKEN_OFFSET``."""
+CELL_TOKENS: tuple[str, ...] = VOCAB[:OBJECT_TOKEN_OFFSET + len(OBJECT_NAMES)]
+"""The tokens a grid cell can hold (condition channel 0): the specials and the object names,
+ids 0 .. len - 1 (a denoiser on pretrained text features embeds these only)."""
 DIRECTION_TOKEN_IDS = np.array([WORD_TO_ID[d] for d in DIRECTIONS], np.int32)
 MAX_TOKENS = 24
 """Fixed instruction length (tokens, padded with 0) of every template, with room to spare."""
@@ -175,12 +225,13 @@ def fill_template(template_ids, ref_class, target_class, direction):
 
 
 def render(setting: str, template: int, ref_class: int, target_class: int, direction: int) -> str:
-    """Plain-Python rendering of an instruction (the reference for tests and export)."""
-    return language.render(TEMPLATES[setting][template], {
-        "ref": OBJECT_NAMES[ref_class - 1] if ref_class > 0 else "",
-        "target": OBJECT_NAMES[target_class - 1],
-        "dir": DIRECTIONS[direction] if direction >= 0 else "",
-    })
+    """Plain-Python rendering of an instruction (the reference for tests and export); template
+    indexes :func:`all_phrasings` (the natural set's sentences from NUM_TEMPLATES on)."""
+    if setting not in TEMPLATES:
+        raise ValueError(f"unknown setting {setting!r}; expected one of {sorted(TEMPLATES)}")
+    table = (TEMPLATES[setting] if template < NUM_TEMPLATES
+             else all_phrasings(TEMPLATES[setting] is _VIA_REFERENCE))
+    return render_phrasing(table[template], ref_class, target_class, direction)
 
 
 def _all_templates():

@@ -110,7 +110,8 @@ def per_phrasing_metrics(positions, steps, episodes, has_reference: bool) -> lis
                                   np.asarray(episodes.expert_path)[keep],
                                   np.asarray(episodes.reference)[keep] if has_reference
                                   else None)
-        rows.append({"template": int(t), "phrasing": grammar.phrasings(has_reference)[int(t)],
+        rows.append({"template": int(t),
+                     "phrasing": grammar.all_phrasings(has_reference)[int(t)],
                      "episodes": int(keep.sum()),
                      **{k: part[k] for k in ("SR", "SR_ordered") if k in part}})
     return rows

@@ -58,6 +58,8 @@ AGENT_CHANNEL = 2
 """The condition channel marking the agent's cell (the "agent" feature)."""
 PATH_CHANNEL, GOAL_CHANNEL, SUBGOAL_CHANNEL = (NUM_COND_CHANNELS, NUM_COND_CHANNELS + 1,
                                                NUM_COND_CHANNELS + 2)
+TEXT_INPUTS = ("tokens", "features")
+"""What a GridTask hands the planner of an episode's instruction (``GridTask.text``)."""
 AVOID_GOAL_COST = 50.0
 """Extra cost of entering the goal estimate's cell while heading for a different sub-goal."""
 FOLLOW_MARK = -0.8
@@ -352,6 +354,10 @@ class GridTask:
       rollout then plans again where the plan marks no neighbour, ``follows_plan``).
     follow_mark: the path value above which psi_follow reads a cell as marked
       (:data:`FOLLOW_MARK`).
+    text: what ``tokens(episode)`` hands the planner: "tokens" (the instruction's token ids)
+      or "features" (its pretrained text features, ``Episode.features``, filled on the host by
+      ``envs.gridworld.sentences.with_features``: a denoiser with
+      ``DenoiserConfig.context_dim`` > 0).
     """
 
     config: GridConfig
@@ -370,8 +376,11 @@ class GridTask:
     num_gen_channels: int = NUM_GEN_CHANNELS
     psi_kind: str = "search"
     follow_mark: float = FOLLOW_MARK
+    text: str = "tokens"
 
     def __post_init__(self):
+        if self.text not in TEXT_INPUTS:
+            raise ValueError(f"text must be one of {TEXT_INPUTS}, got {self.text!r}")
         if self.num_cond_channels != NUM_COND_CHANNELS:
             raise ValueError(f"the grid world has {NUM_COND_CHANNELS} condition channels, got "
                              f"num_cond_channels={self.num_cond_channels}")
@@ -400,7 +409,13 @@ class GridTask:
         return condition_from_observation(env.observe(state, self.config))
 
     def tokens(self, episode: Episode):
-        return episode.tokens
+        """int32 (L,) token ids, or with text "features" float32 (L, D) features."""
+        if self.text == "tokens":
+            return episode.tokens
+        if episode.features is None:
+            raise ValueError("these episodes carry no instruction features: fill them with "
+                             "envs.gridworld.sentences.with_features before the rollout")
+        return episode.features
 
     def psi(self, state: env.State, plan):
         if self.follows_plan:

@@ -152,7 +152,7 @@ def _expert_from(state: env.State, episode: Episode, config: GridConfig,
 
 def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_detour: int = 8,
                      later_leg_value: float = 1.0, search_prob: float = 0.0,
-                     stray_prob: float = 0.0):
+                     stray_prob: float = 0.0, instruction=None):
     """One supervised example: a state along an expert path and the plan from there.
 
     The agent is placed after a uniformly drawn number of expert moves (0..expert_length - 1)
@@ -179,7 +179,12 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
                 the instruction and the reference);
       sub-goal  the reference while the agent has not stood on it (P-MO2G), else the target.
 
-    Returns (x0 float32 (H, W, C + 3), tokens int32 (L,), seen bool (H, W)).
+    instruction: what the example carries of its episode's instruction, ``instruction(episode)``
+    (default the token ids, ``episode.tokens``; a features recipe: its sentence ids,
+    :func:`instruction_sentence_ids`).
+
+    Returns (x0 float32 (H, W, C + 3), tokens int32 (L,) (or what ``instruction`` gives),
+    seen bool (H, W)).
     """
     k_episode, k_index, k_detour, k_moves, k_walk = jax.random.split(key, EXAMPLE_KEYS)
     episode = generate(k_episode, config)
@@ -227,7 +232,17 @@ def training_example(key, config: GridConfig, detour_prob: float = 0.0, max_deto
     signed = lambda mask: (mask.astype(jnp.float32) * 2 - 1)[..., None]  # noqa: E731
     x0 = jnp.concatenate([condition_from_observation(obs), path[..., None], signed(goal),
                           signed(subgoal)], axis=-1)
-    return x0, episode.tokens, state.seen
+    return x0, episode.tokens if instruction is None else instruction(episode), state.seen
+
+
+def instruction_sentence_ids(episode: Episode, config: GridConfig):
+    """int32 (S,) the rows of the episode's instruction's sentences in the training sentence
+    table (``envs.gridworld.sentences.training_index``; -1 = absent)."""
+    from envs.gridworld.sentences import training_index
+
+    return training_index().ids(config.has_reference, episode.template,
+                                episode.reference_class, episode.target_class,
+                                episode.direction)
 
 
 # ------------------------------------------------------------------------------ batches
@@ -254,7 +269,7 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
                   goal_loss_seen_only: bool = False, detour_prob: float = 0.0,
                   goal_loss_weight: float = 1.0, path_near_agent_weight: float = 0.0,
                   later_leg_value: float = 1.0, role_loss_weight: float = 0.0,
-                  search_prob: float = 0.0, stray_prob: float = 0.0):
+                  search_prob: float = 0.0, stray_prob: float = 0.0, text: str = "tokens"):
     """batch_fn(key, batch_size) -> diffplan.train.Batch of examples of one setting.
 
     goal_channel=False trains without goal information (the paper's "- g" ablation: the goal
@@ -273,7 +288,9 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     reference (:func:`training_example`; used only where the target is hidden from the
     reference, P-MO2G-far). stray_prob: the share of examples whose agent walked toward the
     target before standing on the reference (:func:`training_example`; settings with a
-    reference).
+    reference). text: "tokens" (the batch's tokens are token ids) or "pretrained" (the rows
+    of the instruction's sentences in the training sentence table, int32 (B, S), which
+    ``diffplan.train.train(..., sentences=table)`` assembles into features).
     """
     if not role_loss_weight >= 0:
         raise ValueError(f"role_loss_weight must be >= 0, got {role_loss_weight}")
@@ -292,13 +309,16 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
     from diffplan.losses import with_token_labels
     from diffplan.train import Batch
 
+    check_text(text, role_loss_weight=role_loss_weight)
     templates = grammar.compile_templates(config.setting)
+    instruction = (functools.partial(instruction_sentence_ids, config=config)
+                   if text == "pretrained" else None)
 
     def batch_fn(key, batch_size):
         keys = training_episode_keys(key, batch_size)
         example = functools.partial(training_example, config=config, detour_prob=detour_prob,
                                     later_leg_value=later_leg_value, search_prob=search_prob,
-                                    stray_prob=stray_prob)
+                                    stray_prob=stray_prob, instruction=instruction)
         x0, tokens, seen = jax.vmap(example)(keys)
         ones = jnp.ones(x0.shape[:-1], jnp.float32)
         path = ones + path_near_agent_weight * jax.vmap(near_agent)(x0[..., AGENT_CHANNEL])
@@ -307,11 +327,32 @@ def make_batch_fn(config: GridConfig, goal_channel: bool = True,
         if not goal_channel:
             goal, subgoal = jnp.zeros_like(goal), jnp.zeros_like(subgoal)
         mask = jnp.stack([path, goal, subgoal], axis=-1)
+        if text == "pretrained":
+            return Batch(x0=x0, tokens=tokens, loss_mask=mask)
         roles, named = jax.vmap(lambda t: slot_roles(t, templates))(tokens)
         return with_token_labels(Batch(x0=x0, tokens=tokens, loss_mask=mask), roles, named,
                                  role_loss_weight)
 
     return batch_fn
+
+
+TEXTS = ("tokens", "pretrained")
+"""How a recipe gives the denoiser its instructions (``Recipe.text``): token ids of the
+grammar's vocabulary, or the frozen pretrained text encoder's features of each sentence
+(``diffplan.instruction``; the batches carry sentence ids, assembled inside the step)."""
+
+
+def check_text(text: str, word_dropout: float = 0.0, role_loss_weight: float = 0.0) -> None:
+    """ValueError (one line) for an unknown text input, or for what needs word tokens with
+    pretrained features (word dropout, token labels)."""
+    if text not in TEXTS:
+        raise ValueError(f"text must be one of {TEXTS}, got {text!r}")
+    if text == "pretrained" and word_dropout:
+        raise ValueError("word dropout drops word tokens: the pretrained text features have "
+                         "none (use word_dropout=0 with text='pretrained')")
+    if text == "pretrained" and role_loss_weight:
+        raise ValueError("the role loss labels word tokens: the pretrained text features have "
+                         "none (use role_loss_weight=0 with text='pretrained')")
 
 
 ROLES = ("reference", "target", "direction")
@@ -328,7 +369,7 @@ what word dropout never drops."""
 
 def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
                           language: str = "canonical", word_dropout: float = 0.0,
-                          **example_kwargs):
+                          text: str = "tokens", **example_kwargs):
     """batch_fn(key, batch_size) -> Batch with the settings' examples in fixed proportions:
     mixture ((setting, count), ...) gives count examples of each setting per sum(counts) (the
     batch size must be a multiple of sum(counts)); example j of setting s comes from
@@ -336,13 +377,13 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
     instructions (GridConfig.language; never "unseen"). word_dropout: the probability that a
     word other than a slot filler (:data:`SLOT_WORD_IDS`) becomes padding
     (diffplan.language.drop_words, with a key of its own, so the episodes do not change).
-    example_kwargs go to :func:`make_batch_fn`."""
-    from diffplan.train import Batch
-
+    text: "tokens" or "pretrained" (:func:`make_batch_fn`). example_kwargs go to
+    :func:`make_batch_fn`."""
     check_training_language(language)
     check_dropout_rate(word_dropout, "word_dropout")
+    check_text(text, word_dropout)
     total = sum(count for _, count in mixture)
-    fns = [(make_batch_fn(make_config(setting, language=language), goal_channel,
+    fns = [(make_batch_fn(make_config(setting, language=language), goal_channel, text=text,
                           **example_kwargs), count)
            for setting, count in mixture]
 
@@ -354,6 +395,8 @@ def make_mixture_batch_fn(mixture=TRAINING_MIXTURE, goal_channel: bool = True,
         parts = [fn(jax.random.fold_in(key, i), count * scale)
                  for i, (fn, count) in enumerate(fns)]
         batch = jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+        if text == "pretrained":
+            return batch
         return batch._replace(tokens=drop_words(jax.random.fold_in(key, len(fns)),
                                                 batch.tokens, word_dropout, SLOT_WORD_IDS))
 
@@ -375,7 +418,10 @@ class Recipe:
     ``token_classes=3``). search_prob: the share of P-MO2G-far examples placed along the
     searcher's exploration of the instructed sector (:func:`training_example`). stray_prob: the
     share of examples of the settings with a reference whose agent walked toward the target
-    before standing on the reference (:func:`training_example`).
+    before standing on the reference (:func:`training_example`). text: "tokens" (the grammar's
+    token ids) or "pretrained" (the frozen pretrained text encoder's features of each
+    sentence, ``diffplan.instruction``: the batches carry sentence ids into
+    :meth:`sentences`, the training sentence table; no word dropout, no role loss).
     """
 
     mixture: tuple = TRAINING_MIXTURE
@@ -389,10 +435,15 @@ class Recipe:
     role_loss_weight: float = 0.0
     search_prob: float = 0.0
     stray_prob: float = 0.0
+    text: str = "tokens"
+
+    def __post_init__(self):
+        check_text(self.text, self.word_dropout, self.role_loss_weight)
+        check_training_language(self.language)
 
     def batch_fn(self):
         return make_mixture_batch_fn(self.mixture, self.goal_channel, self.language,
-                                     word_dropout=self.word_dropout,
+                                     word_dropout=self.word_dropout, text=self.text,
                                      detour_prob=self.detour_prob,
                                      goal_loss_weight=self.goal_loss_weight,
                                      path_near_agent_weight=self.path_near_agent_weight,
@@ -407,17 +458,41 @@ class Recipe:
         return sum(count for _, count in self.mixture)
 
     def init_batch(self):
-        """Shapes of one example (every setting's examples have the same shapes)."""
+        """Shapes of one example (every setting's examples have the same shapes; with text
+        "pretrained" its tokens are sentence ids)."""
         fn = make_batch_fn(make_config(self.mixture[0][0]),
-                           role_loss_weight=self.role_loss_weight)
+                           role_loss_weight=self.role_loss_weight, text=self.text)
         return jax.eval_shape(lambda k: fn(k, 1), jax.random.PRNGKey(0))
+
+    def sentences(self):
+        """The training sentence table the batches' sentence ids index
+        (``envs.gridworld.sentences.training_table``; computed once, then read from the disk
+        cache), or None with text "tokens"."""
+        if self.text == "tokens":
+            return None
+        from envs.gridworld.sentences import training_table
+
+        return training_table()
+
+    def text_metadata(self) -> dict:
+        """What a checkpoint records of its instruction input: the vocabulary its token ids
+        index, or (text "pretrained") the text encoder (files' sha256, L) and the cell tokens
+        its grid embedding indexes."""
+        if self.text == "tokens":
+            return {"vocabulary": list(grammar.VOCAB)}
+        from diffplan.instruction import encoder_record
+        from envs.gridworld.sentences import instruction_encoder
+
+        encoder = instruction_encoder()
+        return {"text": self.text, "cell_tokens": list(grammar.CELL_TOKENS),
+                "text_encoder": encoder_record(encoder.encoder, encoder.max_tokens)}
 
     def metadata(self) -> dict:
         """What a checkpoint records of the recipe (compared when resuming)."""
         return {"mixture": [list(m) for m in self.mixture], "goal_channel": self.goal_channel,
                 "detour_prob": self.detour_prob, "goal_loss_weight": self.goal_loss_weight,
                 "language": self.language, "num_gen_channels": NUM_GEN_CHANNELS,
-                "vocabulary": list(grammar.VOCAB),
+                **self.text_metadata(),
                 # Recorded only when used, so that checkpoints from before it existed match.
                 **({"path_near_agent_weight": self.path_near_agent_weight}
                    if self.path_near_agent_weight else {}),

@@ -38,6 +38,9 @@ LEGENDS = {
               ("SR, SR_ord, F1 / column SRs", "on the validation episodes (seed 1000), %")),
     "train_split": (("ms", f"milliseconds per call, {TIMED}"), ("% step", "of the full step"),
                     ("compile s", FIRST_CALL)),
+    "train_text": (("ms", "milliseconds per call, median over the alternating rounds, "
+                          "compilation excluded"),
+                   ("vs tokens", "ratio to the token-id model's median in the same rounds")),
 }
 """What each benchmark table's columns mean (experiments.harness.tables.legend)."""
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from experiments.bench import train_split as split_mod, train_worlds as bw
+from experiments.bench import train_split as split_mod, train_text, train_worlds as bw
 from experiments.bench.common import LEGENDS
 from experiments.harness import cli, core as harness, tables
 from experiments.harness.recipes import MODEL_SIZES
@@ -85,6 +85,11 @@ def build_parser():
                         "share). The checkpoint records every setting, so a --train-dir of other settings "
                         "is refused")
     split_mod.add_flags(p)
+    p.add_argument("--text-compare", action="store_true",
+                   help="time the training step and a denoiser call (batch 64) of the grid "
+                        "recipe on token ids and on pretrained text features (--set text=...), "
+                        "alternating, --split-repeats rounds; then the text encoder's time per "
+                        "instruction; and exit")
     p.add_argument("--json", metavar="PATH", help="write the results as JSON")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     return p
@@ -191,6 +196,12 @@ def main(argv=None) -> dict:
               "settings": list(args.set),
               "batch_size": args.batch_size or world.default_batch,
               "machine": harness.machine()}
+    if args.text_compare:
+        result["text_compare"] = train_text.compare(world, args)
+        print(train_text.format_compare(result["text_compare"]))
+        if args.json:
+            cli.write_json(args.json, result)
+        return result
     if args.split or args.split_only:
         result["split"] = split_mod.measure(world, args)
         print(split_mod.format_split(result["split"]))

@@ -124,6 +124,9 @@ def training(world: World, model_size: str, checkpoint_every: int, settings=(), 
 
         spec = SPECS["p_mo2g"]
         config = spec.train_config(0, None, checkpoint_every)
+        recipe = spec.recipe()
+        text = parse_settings(settings, recipe)[2].get("text", spec.text)
+        spec = dataclasses.replace(spec, text=text)  # the model reads what the recipe gives
         model_config, recipe = spec.model_config(model_size), spec.recipe()
     train_set, model_set, recipe_set = parse_settings(settings, recipe)
     recipe = dataclasses.replace(recipe, **recipe_set)

@@ -16,11 +16,11 @@ import dataclasses
 import os
 from typing import Sequence
 
-from experiments.gridworld import eval as ge
+from experiments.gridworld import eval as ge, text
 from experiments.harness import cli, core as harness, processes, tables
 from experiments.gridworld.flags import build_parser, check_args
-from experiments.gridworld.spec import (LANGUAGE_CHOICES, METHOD_NAMES, MODE_REPLAN, SPECS,
-                                        TRIGGER_WORDS, load_checked, method_name, train_setting)
+from experiments.gridworld.spec import (METHOD_NAMES, MODE_REPLAN, SPECS, TRIGGER_WORDS,
+                                        load_checked, method_name, train_setting)
 
 
 def _denoiser(spec, args, modes, parser, progress):
@@ -111,10 +111,12 @@ def _mode_row(spec, task, denoiser, mode, name, all_episodes, args, progress, ke
 
 def _posterior_rows(spec, task, modes, episodes_by_seed, args, progress) -> list[dict]:
     """--posterior-denoiser: each mode planned with envs.gridworld.posterior's denoiser (no
-    learning, exact guesses) on every episode, rows named "<mode>, exact posterior"."""
+    learning, exact guesses; it reads the instruction's token ids) on every episode, rows
+    named "<mode>, exact posterior"."""
     from envs.gridworld.posterior import posterior_denoiser
 
     denoiser = posterior_denoiser(spec.grid_config())
+    task = spec.task(task.num_gen_channels)
     return [_mode_row(spec, task, denoiser, mode, f"{METHOD_NAMES[mode]}, exact posterior",
                       episodes_by_seed, args, progress)[0] for mode in modes]
 
@@ -155,21 +157,22 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
                                warm_num_steps=args.warm_num_steps,
                                fresh_noise=args.noise == "fresh", eta=args.eta,
                                replan=args.replan, psi=args.psi, samples=args.samples,
-                               follow_mark=args.follow_mark)
+                               follow_mark=args.follow_mark, text=args.text)
     from diffplan.jax_cache import enable_compilation_cache
 
     enable_compilation_cache()
     progress = not args.no_progress
     checkpoint, train_seconds, denoiser = _denoiser(spec, args, modes, parser, progress)
-
-    languages = LANGUAGE_CHOICES[args.language]
-    task = spec.task(denoiser.num_gen_channels)
+    encoder = text.checkpoint_encoder(checkpoint, denoiser)  # None: it reads token ids
+    languages = text.languages_of(args.language, encoder is not None)
+    text.check_languages(languages, encoder, checkpoint)
+    task = spec.task(denoiser.num_gen_channels, features=encoder is not None)
     rows, rollouts, episodes_of = [], {}, {}
     keep = None
     for language in languages:
         lspec = dataclasses.replace(spec, language=language)
-        all_episodes = {seed: ge.eval_episodes(lspec.grid_config(), args.episodes, seed)
-                        for seed in seeds}
+        all_episodes = {seed: text.with_features(ge.eval_episodes(
+            lspec.grid_config(), args.episodes, seed), setting, encoder) for seed in seeds}
         if keep is None:
             # Episodes whose world the model trained on are run (so every other episode keeps
             # its key) but left out of every row and the trajectories: the planner's, the
@@ -189,7 +192,9 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
             from experiments.gridworld.controls import control_rows
 
             rows += control_rows(args.control, lspec, modes, all_episodes, lambda s, m, n, e, k:
-                                 _mode_row(s, task, denoiser, m, n, e, args, progress, k))
+                                 _mode_row(s, task, denoiser, m, n, e, args, progress, k),
+                                 lambda e, **slots: text.with_features(e, setting, encoder,
+                                                                        **slots))
         rows += _policy_rows(setting, seeds, args, progress, all_episodes, language, keep)
 
     language = languages[0]
@@ -214,6 +219,7 @@ def main(setting: str, argv: Sequence[str] | None = None) -> dict:
     if args.figures and processes.writes():
         from experiments.gridworld.figures import write_figures
         paths = write_figures(args.figures, spec, task, denoiser, per_seed[seeds[0]], seeds[0],
-                              min(args.num_figures, args.episodes))
+                              min(args.num_figures, args.episodes),
+                              text.texts(per_seed[seeds[0]], setting))
         print(f"wrote {len(paths)} figures to {args.figures}")
     return result

@@ -38,9 +38,24 @@ def control_episodes(control: str, grid_config, episodes, seed: int):
     return jax.tree.map(np.asarray, changed), np.asarray(valid), np.asarray(cells)
 
 
-def control_rows(control: str, spec, modes, all_episodes: dict, mode_row) -> list[dict]:
+def changed_slots(control: str, episodes, keep, named) -> dict:
+    """The slots the control writes into the instruction's text (where keep holds; elsewhere
+    the episode's own): {"reference_class": the named distractor's class} or {"direction": the
+    reversed direction}."""
+    if control == "direction":
+        d = np.asarray(episodes.direction)
+        return {"direction": np.where(keep, (d + 4) % 8, d)}
+    grid = np.asarray(episodes.grid)
+    cls = grid[np.arange(len(grid)), named[:, 0], named[:, 1]].astype(np.int32)
+    return {"reference_class": np.where(keep, cls, np.asarray(episodes.reference_class))}
+
+
+def control_rows(control: str, spec, modes, all_episodes: dict, mode_row,
+                 refill=None) -> list[dict]:
     """One row per mode: ``mode_row(spec, mode, name, episodes_by_seed, keep) -> (row, pooled
-    rollout)`` on the control's episodes of every seed, named "<mode>, <control>"."""
+    rollout)`` on the control's episodes of every seed, named "<mode>, <control>".
+    refill(episodes, reference_class=..., direction=...) -> episodes: recomputes what a
+    denoiser on pretrained features reads (the text with the control's word) where given."""
     from envs.gridworld import controls
     from experiments.gridworld.spec import METHOD_NAMES
 
@@ -49,6 +64,9 @@ def control_rows(control: str, spec, modes, all_episodes: dict, mode_row) -> lis
     for seed, eps in all_episodes.items():
         changed[seed], keep[seed], named[seed] = control_episodes(control, grid_config, eps,
                                                                   seed)
+        if refill is not None:
+            changed[seed] = refill(changed[seed], **changed_slots(control, eps, keep[seed],
+                                                                    named[seed]))
     rows = []
     for mode in modes:
         row, rollout = mode_row(spec, mode, f"{METHOD_NAMES[mode]}, {CONTROL_NAMES[control]}",

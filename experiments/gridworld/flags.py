@@ -88,8 +88,17 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--language", choices=tuple(LANGUAGE_CHOICES), default="canonical",
                    help="instruction phrasing of the episodes: 'canonical' (the paper's, "
                         "default), 'paraphrased' (the training paraphrases), 'unseen' (held-out "
-                        "phrasings training never saw, made of its words), or 'all' (a row per "
-                        "phrasing and mode; the same worlds in each)")
+                        "phrasings training never saw, made of its words), 'natural' (the "
+                        "sealed natural-language set, sentences as people type them: only a "
+                        "checkpoint on pretrained text features reads them), or 'all' (a row "
+                        "per phrasing the checkpoint reads and mode; the same worlds in each)")
+    p.add_argument("--text", choices=("tokens", "pretrained"), default="tokens",
+                   help="the denoiser's instruction input: 'tokens' (the grammar's word ids, "
+                        "default) or 'pretrained' (the frozen pretrained text encoder's "
+                        "features of each sentence, checkpoints/text_encoder: any English "
+                        "sentence). Selects what --train trains and the default checkpoint "
+                        f"(checkpoints/{spec.checkpoint_name}_pretrained); with --checkpoint "
+                        "the checkpoint decides")
     p.add_argument("--batch-size", type=int, default=spec.eval_batch,
                    help=f"episodes per jitted evaluation call and device: the re-planning "
                         f"modes' slots (default {spec.eval_batch})")

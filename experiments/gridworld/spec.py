@@ -31,7 +31,9 @@ when the observation changed or the plan's sub-goal was reached."""
 METHOD_NAMES = {"one_shot": "one-shot", "k_shot": "two-shot", "on_the_fly": "on-the-fly",
                 "warm_start": "warm-start on-the-fly"}
 
-LANGUAGE_CHOICES = harness.LANGUAGE_CHOICES
+LANGUAGE_CHOICES = {**harness.LANGUAGE_CHOICES, "natural": ("natural",)}
+"""--language: one phrasing, or "all" (every one the checkpoint reads: the natural-language set
+only with a denoiser on pretrained features, experiments.gridworld.text.languages_of)."""
 
 CHECKPOINT_EVERY = 500
 """Steps between the checkpoints of a grid-world --train run."""
@@ -96,6 +98,7 @@ class ExperimentSpec:
     follow_mark: float = FOLLOW_MARK
     # Plans drawn per re-plan, the nearest guess kept (PlannerConfig.samples).
     samples: int = 1
+    text: str = "tokens"  # the instruction input (training.TEXTS): token ids or "pretrained"
 
     @property
     def name(self) -> str:
@@ -106,31 +109,37 @@ class ExperimentSpec:
         from envs.gridworld.config import make_config
         return make_config(self.setting, language=self.language)
 
-    def task(self, num_gen_channels: int | None = None):
+    def task(self, num_gen_channels: int | None = None, features: bool = False):
         """The setting's GridTask for a denoiser with num_gen_channels generated channels
-        (default: the current recipe's). The phrasing only changes the episodes' tokens, so
+        (default: the current recipe's), reading token ids or (features) the episodes'
+        pretrained text features. The phrasing only changes the episodes' instruction, so
         every language shares one task (one compiled rollout)."""
         from envs.gridworld.config import make_config
         from envs.gridworld.task import NUM_GEN_CHANNELS, GridTask
         return GridTask(make_config(self.setting), use_goal_channel=self.goal_channel,
                         num_gen_channels=num_gen_channels or NUM_GEN_CHANNELS,
-                        psi_kind=self.psi, follow_mark=self.follow_mark)
+                        psi_kind=self.psi, follow_mark=self.follow_mark,
+                        text="features" if features else "tokens")
 
     def model_config(self, size: str = "default"):
         from envs.gridworld import grammar
         from envs.gridworld.task import NUM_COND_CHANNELS, NUM_GEN_CHANNELS
-        return recipes.denoiser_config(size, vocab_size=len(grammar.VOCAB),
-                                       max_tokens=grammar.MAX_TOKENS,
-                                       num_cond_channels=NUM_COND_CHANNELS,
+        if self.text == "pretrained":
+            from envs.gridworld.sentences import FEATURE_TOKENS, instruction_encoder
+            words = dict(vocab_size=len(grammar.CELL_TOKENS), max_tokens=FEATURE_TOKENS,
+                         context_dim=instruction_encoder().dim)
+        else:
+            words = dict(vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS)
+        return recipes.denoiser_config(size, num_cond_channels=NUM_COND_CHANNELS,
                                        num_gen_channels=NUM_GEN_CHANNELS,
-                                       grid_repr=self.grid_repr)
+                                       grid_repr=self.grid_repr, **words)
 
     def recipe(self):
         from envs.gridworld.training import Recipe
         mixture = {} if self.mixture is None else {"mixture": self.mixture}
         return Recipe(detour_prob=self.detour_prob, goal_loss_weight=self.goal_loss_weight,
                       goal_channel=self.goal_channel, later_leg_value=self.later_leg_value,
-                      **mixture)
+                      text=self.text, **mixture)
 
     def train_config(self, seed: int = 0, steps: int | None = None,
                      checkpoint_every: int = CHECKPOINT_EVERY, objective: str = "diffusion"):
@@ -159,7 +168,8 @@ class ExperimentSpec:
     def training_name(self) -> str:
         """The denoiser's name: the main one, or an ablation's (other grid repr / no g)."""
         suffix = ("" if self.grid_repr == "embed" else f"_{self.grid_repr}") + \
-            ("" if self.goal_channel else "_no_goal")
+            ("" if self.goal_channel else "_no_goal") + \
+            ("" if self.text == "tokens" else f"_{self.text}")
         return self.checkpoint_name + suffix
 
     def default_checkpoint(self) -> str:
@@ -218,11 +228,19 @@ def load_checked(checkpoint: str, spec: ExperimentSpec, modes, parser,
     """The checkpoint's LoadedDenoiser, checked against the grid world and the requested step
     counts; one-line errors for a missing, unreadable or mismatched checkpoint (naming
     train_command, default the setting's `--train`, as the way to get one)."""
+    from diffplan.checkpoint import read_metadata
     from envs.gridworld import grammar
-    from experiments.harness.core import load_checked as load
+    from experiments.harness.core import fail, load_checked as load, vocabulary_mismatch
 
-    denoiser = load(checkpoint, train_command or f"python -m experiments.{spec.name} --train",
-                    spec.mismatch, grammar.VOCAB)
+    denoiser = load(checkpoint, train_command or f"python -m experiments.{spec.name} --train"
+                    + ("" if spec.text == "tokens" else f" --text {spec.text}"), spec.mismatch)
+    meta = read_metadata(checkpoint)  # features: its grid embedding indexes the cell tokens
+    features = bool(getattr(denoiser.model_config, "context_dim", 0))
+    cells = {"extra": {"vocabulary": meta["extra"].get("cell_tokens")}}
+    problem = vocabulary_mismatch(cells if features else meta, denoiser.model_config.vocab_size,
+                                  grammar.CELL_TOKENS if features else grammar.VOCAB)
+    if problem:
+        fail(f"the checkpoint {checkpoint} {problem}")
     for mode in modes:
         try:
             spec.planner_config(mode).check_schedule(denoiser.schedule.num_train_steps)

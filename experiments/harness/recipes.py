@@ -20,8 +20,10 @@ MODEL_SIZES = {
 
 
 def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_channels: int,
-                    num_gen_channels: int, grid_repr: str = "embed"):
-    """The DenoiserConfig of a model size on a world's planning tensor and vocabulary."""
+                    num_gen_channels: int, grid_repr: str = "embed", context_dim: int = 0):
+    """The DenoiserConfig of a model size on a world's planning tensor and vocabulary (or,
+    with context_dim D > 0, a frozen pretrained text encoder's D-wide token features:
+    vocab_size then counts the world's cell tokens only)."""
     from diffplan.denoiser import DenoiserConfig
 
     if size not in MODEL_SIZES:
@@ -29,7 +31,7 @@ def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_cha
     return DenoiserConfig(vocab_size=vocab_size, max_tokens=max_tokens,
                           num_cond_channels=num_cond_channels,
                           num_gen_channels=num_gen_channels, grid_repr=grid_repr,
-                          **MODEL_SIZES[size])
+                          context_dim=context_dim, **MODEL_SIZES[size])
 
 
 def warmup(warmup_steps: int, steps: int) -> int:
@@ -64,14 +66,18 @@ def train_denoiser(model_config, config, recipe, out_dir: str, *, model_size: st
     into out_dir (resuming if it holds a checkpoint of the same settings); the checkpoint's
     metadata records the recipe and the model size. With ``config.objective`` "goal" the same
     network learns the learned-goal baseline instead (``diffplan.baselines.goal``). Returns
-    (TrainResult, seconds)."""
+    (TrainResult, seconds). A recipe whose ``sentences()`` gives a sentence table (text
+    "pretrained") trains on the pretrained text features assembled from it inside the step
+    (``diffplan.train.train(..., sentences=...)``)."""
     from diffplan.baselines.goal import GoalClassifier
     from diffplan.denoiser import Denoiser
     from diffplan.train import train
 
     start = time.time()
     model = (GoalClassifier if config.objective == "goal" else Denoiser)(model_config)
+    sentences = getattr(recipe, "sentences", lambda: None)()
     result = train(model, model_config, config, recipe.batch_fn(), out_dir,
                    init_batch=recipe.init_batch(), progress=progress, callback=callback,
-                   extra_metadata={**recipe.metadata(), "model_size": model_size})
+                   extra_metadata={**recipe.metadata(), "model_size": model_size},
+                   sentences=sentences)
     return result, time.time() - start

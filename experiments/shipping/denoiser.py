@@ -44,6 +44,16 @@ WORLDS = {
                       "python -m experiments.compile_p_mo2g_far --train",
                       "The P-MO2G-far denoiser shipped with diffplan (trained on P-MO2G-far "
                       "beside the paper's three settings; compile_p_mo2g_far evaluates it)."),
+    "gridworld_pretrained": (os.path.join(CHECKPOINT_ROOT, f"{TRAINING_NAME}_pretrained"),
+                             "python -m experiments.compile_p_mo2g --train --text pretrained",
+                             "The grid-world denoiser on the frozen pretrained text encoder's "
+                             "features (checkpoints/text_encoder: any English instruction; one "
+                             "model for 1O1G, MO1G and P-MO2G)."),
+    "gridworld_far_pretrained": (
+        os.path.join(CHECKPOINT_ROOT, f"{FAR_TRAINING_NAME}_pretrained"),
+        "python -m experiments.compile_p_mo2g_far --train --text pretrained",
+        "The P-MO2G-far denoiser on the frozen pretrained text encoder's features (trained on "
+        "P-MO2G-far beside the paper's three settings)."),
     "kuka": (os.path.join(CHECKPOINT_ROOT, "kuka"),
              "python -m experiments.kuka_stacking --train",
              "The Kuka block-world denoiser shipped with diffplan (one model for stacking and "
@@ -142,7 +152,8 @@ def main(argv=None):
                         "and --command and NOTE.md's description; default gridworld)")
     p.add_argument("--out", default=None,
                    help="destination (default checkpoints/compile_gridworld, "
-                        "checkpoints/compile_gridworld_far with --world gridworld_far, or "
+                        "checkpoints/compile_gridworld_far with --world gridworld_far, "
+                        "checkpoints/<that>_pretrained with --world <that>_pretrained, or "
                         "checkpoints/kuka with --world kuka)")
     p.add_argument("--results", action="append", default=[], metavar="JSON",
                    help="experiment results (contract 2) to record in NOTE.md; repeatable")

@@ -1,0 +1,109 @@
+"""A grid-world denoiser on pretrained text features end to end, tiny and untrained: --train
+--text pretrained trains and checkpoints it (its batches' sentence ids assembled from the
+training sentence table inside the step), the CLI loads and evaluates it in the natural
+language too, try_instruction plans a user's own sentence with it and draws the figure; a
+token-id checkpoint is refused the natural language, and try_instruction refuses what it
+cannot do, each in one line. (The numbers of an untrained model mean nothing: only that
+everything runs is checked.)"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from envs.gridworld import grammar
+from envs.gridworld.sentences import FEATURE_TOKENS
+
+
+def run_exit(capsys, fn, *args) -> str:
+    """The one-line error (stderr) of a CLI call that exits with code 2."""
+    with pytest.raises(SystemExit) as e:
+        fn(*args)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    return err
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from experiments.gridworld.cli import main
+
+    out = tmp_path_factory.mktemp("features")
+    train_dir = str(out / "run")
+    result = main("p_mo2g", ["--train", "--text", "pretrained", "--model-size", "tiny",
+                             "--train-steps", "2", "--train-dir", train_dir, "--episodes", "2",
+                             "--batch-size", "2", "--modes", "one_shot", "--language",
+                             "natural", "--no-reference-agents", "--no-progress",
+                             "--json", str(out / "result.json")])
+    return train_dir, result, out
+
+
+def test_train_checkpoint_and_evaluate_in_the_natural_language(trained):
+    from diffplan.checkpoint import read_metadata
+
+    train_dir, result, out = trained
+    assert [row["language"] for row in result["rows"]] == ["natural"]
+    assert result["rows"][0]["method"] == "one-shot, natural"
+    assert os.path.isfile(out / "result.json")
+    meta = read_metadata(train_dir)
+    assert meta["step"] == 2
+    assert meta["input_shapes"]["tokens"] == [1, FEATURE_TOKENS, 384]
+    assert meta["model_config"]["context_dim"] == 384
+    assert meta["model_config"]["vocab_size"] == len(grammar.CELL_TOKENS)
+    extra = meta["extra"]
+    assert extra["text"] == "pretrained" and extra["cell_tokens"] == list(grammar.CELL_TOKENS)
+    assert extra["text_encoder"]["max_tokens"] == FEATURE_TOKENS
+    assert extra["text_encoder"]["directory"] is None  # the shipped encoder
+    assert "vocabulary" not in extra
+
+
+def test_try_instruction_plans_a_users_sentence(trained, tmp_path, capsys):
+    from experiments.gridworld.try_instruction import main
+
+    train_dir, _, _ = trained
+    figure = str(tmp_path / "out.png")
+    result = main(["First go to the apple, then find the pear north of it.", "--setting",
+                   "p_mo2g", "--seed", "3", "--checkpoint", train_dir, "--figure", figure,
+                   "--json", str(tmp_path / "out.json")])
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(("success", "failure")) and "denoiser calls" in out[0]
+    assert os.path.getsize(figure) > 0
+    assert set(result) >= {"success", "ordered", "moves", "denoiser_calls"}
+    assert result["moves"] >= 0 and result["denoiser_calls"] >= 1
+
+
+def test_one_line_refusals(trained, capsys):
+    from experiments.gridworld.cli import main as grid_main
+    from experiments.gridworld.try_instruction import main
+
+    train_dir, _, _ = trained
+    err = run_exit(capsys, grid_main, "p_mo2g", ["--language", "natural", "--episodes", "2",
+                                                  "--no-progress", "--no-reference-agents"])
+    assert "--language natural needs a denoiser on pretrained text features" in err
+    err = run_exit(capsys, main, ["Put red on blue.", "--world", "kuka"])
+    assert "not yet" in err
+    err = run_exit(capsys, main, ["   ", "--checkpoint", train_dir])
+    assert "empty" in err
+    err = run_exit(capsys, main, ["apple " * 60, "--checkpoint", train_dir])
+    assert f"over the limit of {FEATURE_TOKENS}" in err
+    err = run_exit(capsys, main, ["Go to the apple.", "--checkpoint", "compile_gridworld"])
+    assert "reads token ids" in err
+    missing = os.path.join(str(train_dir), "nowhere")
+    err = run_exit(capsys, main, ["Go to the apple.", "--checkpoint", missing])
+    assert "--text pretrained" in err
+
+
+def test_features_of_evaluation_episodes_are_their_rendered_texts(trained):
+    """What the planner reads of an evaluation episode is the encoder's features of the text
+    its phrasing renders (any language; here the held-out one)."""
+    from envs.gridworld.config import make_config
+    from envs.gridworld.sentences import episode_texts, instruction_encoder, with_features
+    from experiments.gridworld.eval import eval_episodes
+
+    episodes = eval_episodes(make_config("p_mo2g", language="unseen"), 6, 1000)
+    filled = with_features(episodes, "p_mo2g", instruction_encoder())
+    texts = episode_texts(episodes, "p_mo2g")
+    assert texts == [grammar.decode(t) for t in np.asarray(episodes.tokens)]
+    np.testing.assert_array_equal(filled.features, instruction_encoder().encode(texts))
