@@ -10,6 +10,7 @@ Public entry points (DESIGN.md, contracts 3 and 5):
   ``diffplan.Task``.
 """
 from diffplan.denoiser import LoadedDenoiser, load_denoiser
+from diffplan.baselines import goal as _goal  # noqa: F401  registers GoalClassifier (a Denoiser)
 from diffplan.planner import MODES, Planner, PlannerConfig, PlannerState
 from diffplan.rollouts import Rollout, StreamRollout, rollout, rollout_stream
 from diffplan.sampler import denoiser_calls, sample
