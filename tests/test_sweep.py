@@ -244,7 +244,7 @@ def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
     path = tmp_path / "kuka.json"
     path.write_text(json.dumps([{**common, "modes": "on_the_fly"},
                                 {**common, "modes": "on_the_fly", "multi": True},
-                                {**common, "modes": "on_the_fly", "language": "development",
+                                {**common, "modes": "on_the_fly", "language": "paraphrased",
                                  "reader": "checkpoints/kuka_reader"}]))
     result = sweep.main(["--config", str(path), "--json", str(tmp_path / "s.json"),
                          "--csv", str(tmp_path / "s.csv"), "--trajectories",
@@ -254,10 +254,12 @@ def test_kuka_sweep_rows_equal_the_kuka_cli_rows(tmp_path):
     assert [(r["modes"], r["multi"], r["column"]) for r in rows] == [
         ("on_the_fly", False, "single"), ("on_the_fly", True, "multi"),
         ("on_the_fly", False, "single")]
-    # Development phrasings restated by the shipped reader: the same relations as the canonical
-    # episodes of the seed, read back to their exact tokens, so the same rollout and row.
+    # Paraphrased phrasings restated by the shipped reader: the same relations as the canonical
+    # episodes of the seed, read back to their exact tokens (none refused), so the same rollout
+    # and row.
     read = rows.pop()
     assert read["reader"] == "checkpoints/kuka_reader" and read["method"].endswith("read")
+    assert read["unread_episodes"] == 0 and rows[0]["unread_episodes"] == 0
     for key in ("SR", "SR_diffuser", "placements_per_episode", "denoiser_calls_per_episode"):
         assert read[key] == rows[0][key], key
     # On-the-fly: one plan of NUM_STEPS denoiser calls per placement.

@@ -46,10 +46,12 @@ class State:
 
 
 def reset(episode: Episode) -> State:
-    """The state at t = 0: blocks at rest at episode.block_xy, the arm at home, nothing held."""
+    """The state at t = 0: blocks at rest at episode.block_xy, the arm at home, nothing held;
+    done already if the episode allows no placement (max_steps 0: an instruction a reader
+    refused, envs.kuka.reader.read_episodes)."""
     data = physics.initial_data(episode.block_xy)
     return State(data=data, episode=episode, t=jnp.zeros((), jnp.int32),
-                 done=jnp.zeros((), bool),
+                 done=jnp.asarray(episode.max_steps) <= 0,
                  frames=jnp.broadcast_to(data.qpos, (primitive.NUM_FRAMES,) + data.qpos.shape))
 
 
