@@ -376,3 +376,6 @@ def test_read_episodes_leaves_an_unread_episode_unacted_and_it_counts_as_failed(
     # planted: the same states without the flag read 100: the flag is what fails the episode
     clean = ke.column_metrics("read", "single", eps, {**final, "unread": np.zeros(4, bool)}, 0.0)
     assert clean["SR"] == 100.0 and clean["unread_episodes"] == 0
+    from experiments.kuka.tables import format_table  # the count printed where it is not 0
+
+    assert "unread" in format_table([row]) and "unread" not in format_table([clean])

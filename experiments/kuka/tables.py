@@ -51,6 +51,14 @@ def rows_legend(rows) -> list[tuple[str, str]]:
         if phrasings else [])
 
 
+UNREAD_COLUMN = ("unread_episodes", "{:>6d}", "unread",
+                 "episodes whose instruction the reader could not restate (envs.kuka.reader: "
+                 "not acted on, counted failed)")
+"""Shown only when a reader refused some instruction."""
+
+
 def format_table(rows) -> str:
     """A plain-text table of result rows (missing values shown as '-'), then its legend."""
-    return _table(rows, TABLE_COLUMNS, LEGEND, rows_legend(rows))
+    unread = (UNREAD_COLUMN,) if any(r.get("unread_episodes") for r in rows) else ()
+    return _table(rows, TABLE_COLUMNS[:-1] + unread + TABLE_COLUMNS[-1:], LEGEND,
+                  rows_legend(rows))
