@@ -228,13 +228,13 @@ def load_checked(checkpoint: str, spec: ExperimentSpec, modes, parser,
     """The checkpoint's LoadedDenoiser, checked against the grid world and the requested step
     counts; one-line errors for a missing, unreadable or mismatched checkpoint (naming
     train_command, default the setting's `--train`, as the way to get one)."""
-    from diffplan.checkpoint import read_metadata
+    from diffplan.checkpoint import read_metadata, resolve_checkpoint
     from envs.gridworld import grammar
     from experiments.harness.core import fail, load_checked as load, vocabulary_mismatch
 
     denoiser = load(checkpoint, train_command or f"python -m experiments.{spec.name} --train"
                     + ("" if spec.text == "tokens" else f" --text {spec.text}"), spec.mismatch)
-    meta = read_metadata(checkpoint)  # features: its grid embedding indexes the cell tokens
+    meta = read_metadata(resolve_checkpoint(checkpoint))  # features: cells index cell tokens
     features = bool(getattr(denoiser.model_config, "context_dim", 0))
     cells = {"extra": {"vocabulary": meta["extra"].get("cell_tokens")}}
     problem = vocabulary_mismatch(cells if features else meta, denoiser.model_config.vocab_size,

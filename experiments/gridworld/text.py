@@ -26,12 +26,12 @@ def checkpoint_encoder(checkpoint: str, denoiser):
     """The ``diffplan.instruction.InstructionEncoder`` a features checkpoint was trained with
     (None for a token-id checkpoint); one-line error (exit 2) if it cannot be loaded or its
     files differ from the recorded ones."""
-    from diffplan.checkpoint import read_metadata
+    from diffplan.checkpoint import read_metadata, resolve_checkpoint
     from diffplan.instruction import load_instruction_encoder
 
     if not reads_features(denoiser):
         return None
-    record = read_metadata(checkpoint).get("extra", {}).get("text_encoder")
+    record = read_metadata(resolve_checkpoint(checkpoint)).get("extra", {}).get("text_encoder")
     if record is None:
         harness.fail(f"the checkpoint {checkpoint} reads pretrained features but records no "
                      "text encoder")
