@@ -24,12 +24,17 @@ take the experiment CLIs' defaults, listed below); on the command line, comma-se
 give every combination.
 
 Grid world: each configuration runs as one call of a jitted function over all its episodes,
-split over the devices (diffplan.sharding.per_device); each episode's result is the same on any
-number of devices. Kuka world: the Kuka CLIs' batched rollout under MJX physics, so a row equals
-the CLI's row of the same column. Compiled functions are kept and reused by configurations of
-the same shapes and planner settings (another seed or another checkpoint of the same
-architecture costs no compilation); ``compile_seconds`` is the lowering and compilation time of
-a configuration (0 when reused).
+split over the devices of every process (the CLIs' program); each episode's result is the same
+on any number of devices and processes. Kuka world: the Kuka CLIs' batched rollout under MJX
+physics, so a row equals the CLI's row of the same column. Compiled functions are kept and
+reused by configurations of the same shapes and planner settings (another seed or another
+checkpoint of the same architecture costs no compilation); ``compile_seconds`` is the lowering
+and compilation time of a configuration (0 when reused).
+
+Several processes (--coordinator, --num-processes, --process-id, or a SLURM / TPU-pod job):
+episodes split over all their devices, process 0 prints and writes. Each finished
+configuration's row is kept at once in <--json or --csv>.parts/; a sweep that died (a process
+killed, a host lost) and is run again with the same command resumes from those rows.
 
 Rows: the metrics of contract 2 (grid world: SR, SR_ordered, GD, path P/R/F1; Kuka: strict SR,
 SR_diffuser, all_constraints, tower; both: denoiser calls per episode, seconds) plus

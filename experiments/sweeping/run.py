@@ -3,8 +3,9 @@ compiled evaluations for reuse by later configurations of the same shapes and pl
 
 Grid world: each configuration is one call of a jitted function over all its episodes: the
 re-planning modes on a pool of slots per device (diffplan.rollout_stream), the others as one
-diffplan.rollout batch, episodes split over the devices (diffplan.sharding.per_device); each
-episode's result is the same on any number of devices. Kuka world: the Kuka CLIs' evaluation
+diffplan.rollout batch, episodes split over the devices of every process (the CLIs' program,
+experiments.harness.core.rollout_fn); each episode's result is the same on any number of
+devices and processes. Kuka world: the Kuka CLIs' evaluation
 (experiments.kuka.eval.run_planner: diffplan.rollout in calls of batch_size episodes) of one
 Table 2 column, with the CLIs' per-episode keys, so a row equals the CLI's row of that column.
 """
@@ -124,20 +125,6 @@ class Runner:
             self._episodes[key] = make()
         return self._episodes[key]
 
-    def _grid_function(self, task, mode: str, slots: int):
-        from diffplan import sharding as shd
-        from diffplan.rollouts import rollout, rollout_stream
-        from experiments.harness.progress import RELAY
-
-        def evaluate(planner, token, keys, episodes):
-            if mode in ge.STREAM_MODES:
-                part = token + jax.lax.axis_index(shd.DATA_AXIS) if self.devices > 1 else token
-                return rollout_stream(task, planner, keys, episodes, slots, on_move=RELAY,
-                                      token=part)
-            return rollout(task, planner, keys, episodes)
-
-        return shd.per_device(evaluate, self.mesh, num_replicated=2)
-
     def _run_grid(self, config: dict, index: int, trajectories: str | None):
         from diffplan import sharding as shd
         from diffplan.planner import Planner
@@ -161,11 +148,12 @@ class Runner:
         bar = self._bar(config, index)
         token = RELAY.attach(bar)
         try:
-            compiled, compile_seconds = self._cached(cache_key, lambda: self._grid_function(
-                task, config["modes"], slots).lower(planner, jnp.int32(0), keys,
-                                                    chunk).compile())
+            # The CLIs' program (harness.rollout_fn), so the two share compilations.
+            compiled, compile_seconds = self._cached(cache_key, lambda: harness.rollout_fn(
+                task, slots if config["modes"] in ge.STREAM_MODES else None, self.mesh).lower(
+                    planner, keys, chunk, jnp.int32(0)).compile())
             t0 = time.time()
-            out = gather(compiled(planner, jnp.int32(token * PARTS), keys, chunk))
+            out = gather(compiled(planner, keys, chunk, jnp.int32(token * PARTS)))
             seconds = time.time() - t0
         finally:
             RELAY.detach(token)
