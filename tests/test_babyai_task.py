@@ -167,3 +167,24 @@ def test_a_pluggable_tokenizer_fills_the_episode_tokens():
     assert episode.tokens.shape == (10,) and int(episode.tokens[0]) == 103   # "go"
     with pytest.raises(ValueError, match="must return 8 integer ids"):
         make_config("goto_local", tokenizer=ids).tokenize("go to the red ball")
+
+
+def test_the_batched_route_search_equals_the_per_map_one(layouts):
+    """navigate.cost_to_go under vmap runs its relaxation with the batch laid out last (psi's
+    speed on the 22 x 22 maps): the same fields, bit for bit, as one map at a time, including
+    maps whose goal is unreachable and a batched start beside an unbatched enter."""
+    from envs.babyai import navigate
+    from envs.babyai.task import _route_field
+
+    task = BabyAITask(make_config("goto"))
+    states = jax.vmap(task.reset)(layouts["goto"])
+    plans = jax.random.uniform(jax.random.PRNGKey(3), (8, 22, 22, 3), minval=-1, maxval=1)
+    _, enter, _, stand, _ = jax.vmap(lambda s, p: _route_field(s, p, 1.0, 2.0))(states, plans)
+    start = jnp.where(stand, 0.5, jnp.inf).at[0].set(jnp.inf)       # map 0: no goal at all
+    batched = np.asarray(jax.jit(jax.vmap(navigate.cost_to_go))(enter, start))
+    one = jax.jit(navigate.cost_to_go)
+    for b in range(8):
+        np.testing.assert_array_equal(batched[b], np.asarray(one(enter[b], start[b])))
+    assert np.isinf(batched[0]).all() and np.isfinite(batched[1]).any()
+    shared = np.asarray(jax.vmap(navigate.cost_to_go, in_axes=(None, 0))(enter[1], start))
+    np.testing.assert_array_equal(shared[1], batched[1])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
 
 from envs.babyai import objects as O
 
@@ -33,16 +34,45 @@ def adjacent(mask):
     return jnp.any(neighbours(mask, False), axis=0)
 
 
+@custom_vmap
 def cost_to_go(enter, start):
     """float32 (H, W): the least cost from each cell to a goal, moving between 4-neighbours and
     paying ``enter`` of each cell entered; start float32 (H, W) the cost of ending at each cell
     (``inf`` where it is no goal). Bellman-Ford relaxation until nothing changes (at most H * W
-    rounds). A cell's own enter cost does not count for leaving it (the agent's cell)."""
-    h, w = enter.shape
+    rounds). A cell's own enter cost does not count for leaving it (the agent's cell).
 
-    def relax(field):
-        through = neighbours(enter + field, INF)         # entering neighbour d, then on
-        return jnp.minimum(start, jnp.min(through, axis=0))
+    Under ``vmap`` (psi over a batch of episodes) the relaxation runs on the batch laid out
+    last, (H, W, B) (:func:`_cost_to_go_batched`): the same values, bit for bit, about three
+    times faster on the CPU than vmap's (B, H, W) layout, whose 22-wide rows vectorise poorly
+    (docs/DESIGN.md, the BabyAI paragraph)."""
+    return _relax(enter[..., None], start[..., None])[..., 0]
+
+
+@cost_to_go.def_vmap
+def _cost_to_go_batched(axis_size, in_batched, enter, start):
+    """cost_to_go's batching rule: the batch moved to the last axis, relaxed, moved back."""
+    enter, start = (x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
+                    for x, batched in zip((enter, start), in_batched))
+    field = _relax(jnp.moveaxis(enter, 0, -1), jnp.moveaxis(start, 0, -1))
+    return jnp.moveaxis(field, -1, 0), True
+
+
+def _neighbour_min(field):
+    """(H, W, B): the least of each cell's 4-neighbours in field (H, W, B) (inf off the map)."""
+    h, w, b = field.shape
+    col = jnp.full((h, 1, b), INF, field.dtype)
+    row = jnp.full((1, w, b), INF, field.dtype)
+    east = jnp.concatenate([field[:, 1:], col], 1)
+    west = jnp.concatenate([col, field[:, :-1]], 1)
+    south = jnp.concatenate([field[1:], row], 0)
+    north = jnp.concatenate([row, field[:-1]], 0)
+    return jnp.minimum(jnp.minimum(east, south), jnp.minimum(west, north))
+
+
+def _relax(enter, start):
+    """cost_to_go of B maps laid out (H, W, B): Jacobi relaxation until no cell of any map
+    changes (a converged map stays as it is), at most H * W rounds."""
+    h, w = enter.shape[:2]
 
     def cond(carry):
         i, field, changed = carry
@@ -50,7 +80,7 @@ def cost_to_go(enter, start):
 
     def body(carry):
         i, field, _ = carry
-        new = jnp.minimum(field, relax(field))
+        new = jnp.minimum(field, jnp.minimum(start, _neighbour_min(enter + field)))
         return i + 1, new, jnp.any(new < field)
 
     _, field, _ = jax.lax.while_loop(cond, body, (0, start, jnp.array(True)))
