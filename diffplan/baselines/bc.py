@@ -62,14 +62,15 @@ def make_bc_step(model, optimizer, batch_fn: Callable):
 def train_bc(out_dir: str, batch_fn: Callable, input_shapes: Mapping[str, tuple],
              config: BCTrainConfig = BCTrainConfig(),
              net: nets.ConvNetConfig = nets.ConvNetConfig(), *, data: Mapping | None = None,
-             progress: bool = True):
+             progress: bool = True, callback: Callable | None = None):
     """Trains BC into out_dir (resuming); returns diffplan.train.FitResult.
 
     batch_fn(key, batch_size) -> (conditions (B, H, W, C), goals (B, G), actions int32 (B,) or
     (B, K): see :func:`bc_loss`): the world's expert examples. input_shapes: {"condition":
     (1, H, W, C), "goal": (1, G)}.
     data: the world's description of the batches, stored in the run's train config (a run of
-    other data refuses to resume)."""
+    other data refuses to resume). callback: ``diffplan.train.fit``'s (after every record and
+    checkpoint; it may raise to stop training, e.g. at a time budget)."""
     model = nets.GoalConvNet(net)
     optimizer = optax.adam(config.lr)
     metadata = run_metadata(model, net, nets.config_dict(config, data), dict(input_shapes),
@@ -78,4 +79,4 @@ def train_bc(out_dir: str, batch_fn: Callable, input_shapes: Mapping[str, tuple]
     return fit(step, lambda: nets.init_state(model, optimizer, config.seed, input_shapes),
                steps=config.steps, seed=config.seed, out_dir=out_dir, metadata=metadata,
                checkpoint_every=config.checkpoint_every, log_every=config.log_every,
-               progress=progress, desc="BC")
+               progress=progress, desc="BC", callback=callback)

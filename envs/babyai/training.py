@@ -168,14 +168,10 @@ def training_example(task: BabyAITask, episode: E.Episode, actions, length, key,
                        jax.random.randint(n_key, (), 1, MAX_DETOUR + 1), 0)
     random_actions = DETOUR_ACTIONS[jax.random.randint(a_key, (MAX_DETOUR,), 0,
                                                        DETOUR_ACTIONS.shape[0])]
-    plan_actions = jnp.concatenate([actions.astype(jnp.int32), random_actions])
-
-    def body(s, i):
-        a = jnp.where(i < k, plan_actions[i], random_actions[jnp.clip(i - k, 0, MAX_DETOUR - 1)])
-        moved = task.step(s, a)
-        return jax.tree.map(lambda x, y: jnp.where(i < k + detour, y, x), s, moved), None
-
-    state, _ = jax.lax.scan(body, task.reset(episode), jnp.arange(plan_actions.shape[0]))
+    i = jnp.arange(actions.shape[0] + MAX_DETOUR)
+    expert_first = jnp.concatenate([actions.astype(jnp.int32), random_actions])
+    sequence = jnp.where(i < k, expert_first, random_actions[jnp.clip(i - k, 0, MAX_DETOUR - 1)])
+    state = play(task, episode, sequence, k + detour)
     path, goal, subgoal, cost = expert.expert_plan(state)
     shape = (task.height, task.width)
     gen = jnp.stack([_padded_labels(path, shape), _padded_labels(goal, shape),
@@ -190,11 +186,23 @@ def training_example(task: BabyAITask, episode: E.Episode, actions, length, key,
     return x0, episode.tokens, loss_mask
 
 
-def make_batch_fn(task: BabyAITask, layouts: Layouts, detour_prob: float = 0.5,
-                  goal_loss_weight: float = 3.0):
-    """batch_fn(key, batch_size) -> (x0, tokens, loss_mask) with leading axis batch_size, the
-    layouts drawn uniformly; the cache stays on the host (a ``jax.pure_callback`` fetches the
-    drawn layouts), so the compiled step holds none of it."""
+def play(task: BabyAITask, episode: E.Episode, actions, count):
+    """The state after the first ``count`` (int32 ()) of ``actions`` (int (T,)) from the
+    episode's reset (a ``lax.scan`` over all T; the rest leave the state as it is)."""
+
+    def body(s, i):
+        moved = task.step(s, actions[i].astype(jnp.int32))
+        return jax.tree.map(lambda x, y: jnp.where(i < count, y, x), s, moved), None
+
+    state, _ = jax.lax.scan(body, task.reset(episode), jnp.arange(actions.shape[0]))
+    return state
+
+
+def layout_sampler(layouts: Layouts):
+    """sample(key, batch_size) -> (episodes, expert actions int32 (B, T), lengths int32 (B,))
+    of batch_size layouts drawn uniformly, under ``jit``; the cache stays on the host (a
+    ``jax.pure_callback`` fetches the drawn layouts), so a compiled step holds none of it and
+    draws only these layouts (the denoiser's batches and BC's, ``envs.babyai.baselines``)."""
     host = jax.tree.map(np.asarray, layouts.episodes)
     actions, lengths = np.asarray(layouts.actions), np.asarray(layouts.lengths)
     n = len(layouts)
@@ -204,14 +212,26 @@ def make_batch_fn(task: BabyAITask, layouts: Layouts, detour_prob: float = 0.5,
         return (jax.tree.map(lambda x: x[idx], host), actions[idx].astype(np.int32),
                 lengths[idx])
 
-    def batch_fn(key, batch_size):
-        pick_key, example_key = jax.random.split(key)
-        idx = jax.random.randint(pick_key, (batch_size,), 0, n)
+    def sample(key, batch_size):
+        idx = jax.random.randint(key, (batch_size,), 0, n)
         shapes = (jax.tree.map(lambda x: jax.ShapeDtypeStruct((batch_size,) + x.shape[1:],
                                                               x.dtype), host),
                   jax.ShapeDtypeStruct((batch_size, actions.shape[1]), jnp.int32),
                   jax.ShapeDtypeStruct((batch_size,), jnp.int32))
-        episodes, acts, lens = jax.pure_callback(fetch, shapes, idx)
+        return jax.pure_callback(fetch, shapes, idx)
+
+    return sample
+
+
+def make_batch_fn(task: BabyAITask, layouts: Layouts, detour_prob: float = 0.5,
+                  goal_loss_weight: float = 3.0):
+    """batch_fn(key, batch_size) -> (x0, tokens, loss_mask) with leading axis batch_size, the
+    layouts drawn uniformly (:func:`layout_sampler`)."""
+    sample = layout_sampler(layouts)
+
+    def batch_fn(key, batch_size):
+        pick_key, example_key = jax.random.split(key)
+        episodes, acts, lens = sample(pick_key, batch_size)
         keys = jax.random.split(example_key, batch_size)
         return jax.vmap(lambda e, a, l, k: training_example(
             task, e, a, l, k, detour_prob, goal_loss_weight))(episodes, acts, lens, keys)
