@@ -5,8 +5,8 @@ code's own imports, module-level and inside functions alike:
 - ``envs/`` (the worlds) imports nothing from ``experiments/``;
 - no package has an import circle (a module that, through its imports, imports itself);
 - inside ``experiments/``, a subpackage imports only those on floors below its own: the shared
-  ``harness`` first, then one per world (``gridworld``, ``kuka``), then those over both worlds
-  (``sweeping``, ``bench``, ``shipping``); the entry points at the top may import any;
+  ``harness`` first, then one per world (``gridworld``, ``kuka``, ``babyai``), then those over
+  the worlds (``sweeping``, ``bench``, ``shipping``); the entry points at the top may import any;
 - no module under ``experiments/`` is longer than 250 lines.
 """
 from __future__ import annotations
@@ -19,8 +19,8 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGES = ("diffplan", "envs", "experiments")
 MAX_EXPERIMENT_LINES = 250
-EXPERIMENT_FLOORS = {"harness": 0, "gridworld": 1, "kuka": 1, "sweeping": 2, "bench": 2,
-                     "shipping": 2}
+EXPERIMENT_FLOORS = {"harness": 0, "gridworld": 1, "kuka": 1, "babyai": 1, "sweeping": 2,
+                     "bench": 2, "shipping": 2}
 """The subpackages of experiments/ by floor: each imports only subpackages of lower floors."""
 
 

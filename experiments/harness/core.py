@@ -85,15 +85,16 @@ def parse_seeds(parser, args) -> tuple[int, ...]:
     return seeds
 
 
-def add_seed_flags(parser, *, episodes: int, episodes_help: str, where: str = "") -> None:
+def add_seed_flags(parser, *, episodes: int, episodes_help: str, where: str = "",
+                   episode_of: str = "generated from fold_in(PRNGKey(seed), i)") -> None:
     """--episodes, --seed and --seeds (where: what episode i is drawn for, e.g. ' in each
-    column')."""
+    column'; episode_of: how episode i of a seed comes about, e.g. BabyAI's minigrid seed)."""
     parser.add_argument("--episodes", type=int, default=episodes,
                         help=f"{episodes_help} (default {episodes})")
     parser.add_argument("--seed", type=int, default=DEFAULT_EVAL_SEED,
-                        help=f"evaluation seed: episode i is generated from fold_in(PRNGKey("
-                             f"seed), i){where} (default {DEFAULT_EVAL_SEED}, an evaluation "
-                             "seed; training uses a disjoint key stream)")
+                        help=f"evaluation seed: episode i is {episode_of}{where} (default "
+                             f"{DEFAULT_EVAL_SEED}, an evaluation seed; training uses a "
+                             "disjoint stream)")
     parser.add_argument("--seeds", metavar="S1,S2,...", default=None,
                         help="evaluate on several seeds (--episodes each) and report pooled "
                              "rates with 95%% intervals and per-seed values; the README uses "

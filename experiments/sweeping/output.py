@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 
+from experiments.harness.plots import log_ticks, place_labels
 from experiments.harness.tables import legend
 
 CSV_FIELDS = ("task", "setting", "modes", "num_steps", "eta", "warm_num_steps",
@@ -63,68 +64,6 @@ SECOND_PANELS = (("path_f1", "path F1 (%)"), ("SR_diffuser", "SR, Diffuser's che
 """The right panel: the first of these that every row has (none: SR alone)."""
 
 
-def _log_ticks(ax, values) -> None:
-    """Major ticks of a log x axis at 1, 2, 5 x 10^k, plain numbers, no minor labels (which
-    pile up when the values span less than a decade); where fewer than two such ticks fall
-    inside the values' range, four evenly spaced (in log) rounded ticks instead."""
-    from matplotlib import ticker
-
-    lo, hi = min(values), max(values)
-    ax.set_xlim(lo / 1.25, hi * 1.25)
-    ax.xaxis.set_major_locator(ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
-    ax.xaxis.set_minor_formatter(ticker.NullFormatter())
-    ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
-    inside = [t for t in ax.xaxis.get_major_locator().tick_values(lo / 1.25, hi * 1.25)
-              if lo / 1.25 <= t <= hi * 1.25]
-    if len(inside) < 2:
-        ax.xaxis.set_major_locator(ticker.FixedLocator(sorted(
-            {float(f"{v:.2g}") for v in np.geomspace(lo / 1.2, hi * 1.2, 4)})))
-
-
-def _overlaps(box, boxes, pad: float) -> bool:
-    return any(box.x0 < b.x1 + pad and b.x0 < box.x1 + pad and box.y0 < b.y1 + pad
-               and b.y0 < box.y1 + pad for b in boxes)
-
-
-def _place_labels(ax, xs, ys, names, renderer) -> None:
-    """Each point's name beside it, where it covers no other name, no point and stays inside
-    the axes: the first free place of eight directions at growing distances (a grey leader
-    from a far one to its point); a name that finds none is replaced by its number in the
-    printed table (its #), placed the same way."""
-    from matplotlib.transforms import Bbox
-
-    frame = ax.get_window_extent(renderer)
-    points = [Bbox.from_extents(px - 4, py - 4, px + 4, py + 4)
-              for px, py in ax.transData.transform(np.column_stack([xs, ys]))]
-    placed = []
-    offsets = [(dx * r, dy * r) for r in (6, 14, 24, 36)
-               for dx, dy in ((1, 1), (1, -1), (-1, 1), (-1, -1), (1, 0), (-1, 0), (0, 1),
-                              (0, -1))]
-    for i in np.argsort(xs):
-        for text in (names[i], str(i + 1)):
-            fits = None
-            for dx, dy in offsets:
-                note = ax.annotate(text, (xs[i], ys[i]), xytext=(dx, dy), fontsize=7.5,
-                                   textcoords="offset points", va="center",
-                                   ha="left" if dx > 0 else "right" if dx < 0 else "center")
-                box = note.get_window_extent(renderer)
-                if frame.contains(box.x0, box.y0) and frame.contains(box.x1, box.y1) and \
-                        not _overlaps(box, placed, 5.0) and not _overlaps(box, points, 0.0):
-                    fits = note
-                    break
-                note.remove()
-            if fits is not None:
-                placed.append(box)
-                if max(abs(dx), abs(dy)) > 6:  # a leader from a far name to its point
-                    px, py = ax.transData.transform((xs[i], ys[i]))
-                    k = renderer.points_to_pixels(1.0)
-                    end = ax.transData.inverted().transform((px + 0.8 * dx * k,
-                                                             py + 0.8 * dy * k))
-                    ax.plot([xs[i], end[0]], [ys[i], end[1]], color="0.55", linewidth=0.6,
-                            zorder=1)
-                break
-
-
 def write_figures(out_dir: str, rows) -> list[str]:
     """Two PNGs (x: denoiser calls per episode, then evaluation seconds), each with SR and
     (grid world) path F1 / (Kuka) Diffuser's SR against the cost, every configuration
@@ -156,7 +95,7 @@ def write_figures(out_dir: str, rows) -> list[str]:
             ax.plot([xs[i] for i in front], [ys[i] for i in front], color="#d04020",
                     zorder=2, marker="o", markerfacecolor="none", label="Pareto front")
             ax.set_xscale("log")
-            _log_ticks(ax, xs)
+            log_ticks(ax, xs)
             ax.set_xlabel(x_label)
             ax.set_ylabel(y_label)
             lo, hi = min(ys), max(ys)
@@ -170,7 +109,7 @@ def write_figures(out_dir: str, rows) -> list[str]:
         fig.set_layout_engine("none")  # the layout stays; names are placed inside the axes
         renderer = fig.canvas.get_renderer()
         for ax, (y_key, _) in zip(axes, panels):
-            _place_labels(ax, xs, [r[y_key] for r in rows], names, renderer)
+            place_labels(ax, xs, [r[y_key] for r in rows], names, renderer)
         path = os.path.join(out_dir, name)
         fig.savefig(path, dpi=FIGURE_DPI)
         paths.append(path)
