@@ -29,7 +29,7 @@ Instruction input (``DenoiserConfig.context_dim``):
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -43,7 +43,8 @@ from diffplan.text_encoder import TextEncoder
 from diffplan.unet import UNet, fast_init
 
 __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "init_params",
-           "GRID_REPRS", "LoadedDenoiser", "load_denoiser", "noise_from_x0", "ModuleApply"]
+           "GRID_REPRS", "LoadedDenoiser", "load_denoiser", "noise_from_x0", "ModuleApply",
+           "TextContext"]
 
 GRID_REPRS = ("embed", "class_id")
 _TUPLE_FIELDS = ("widths", "attn_levels", "cross_attn_levels")
@@ -189,12 +190,25 @@ class DenoiserConfig:
         return models.config_from_dict(cls, d)
 
 
+class TextContext(NamedTuple):
+    """An instruction as the UNet cross-attends to it: the text encoder's output, computed once
+    (:meth:`Denoiser.encode_text`) and passed as the denoiser's ``tokens`` in place of the
+    instruction (the planner does so for a denoiser on pretrained features: the text part of
+    the network then runs once per episode, not at every denoiser call).
+
+    features: float32 (..., L, text_dim); mask: bool (..., L), True at real tokens."""
+
+    features: jax.Array
+    mask: jax.Array
+
+
 class Denoiser(nn.Module):
     """eps-prediction network for the generated channels.
 
     Call: x_t (B, H, W, C+G) float32, t (B,) int32, tokens (B, L) int32 (0 = padding), or
       with ``config.context_dim`` = D pretrained token features (B, L, D) float32 (0 =
-      padding) -> eps (B, H, W, G) float32.
+      padding), or their :class:`TextContext` (:meth:`encode_text`) -> eps (B, H, W, G)
+      float32.
     H and W must be multiples of ``config.min_size_multiple``; L <= config.max_tokens.
     Parameters: ``token_embed`` (only for grid_repr "embed": shared by cells and words),
     ``text_encoder``, ``unet``, and ``token_head`` when ``config.token_classes`` > 0.
@@ -229,6 +243,11 @@ class Denoiser(nn.Module):
         context, _ = self.text_encoder(tokens)
         return self.token_head(context)
 
+    def encode_text(self, tokens: jax.Array) -> TextContext:
+        """The instruction's :class:`TextContext` (what the UNet cross-attends to): tokens
+        (B, L) int32, or (B, L, D) features -> features (B, L, text_dim), mask (B, L)."""
+        return TextContext(*self.text_encoder(tokens))
+
     def encode_grid(self, x_t: jax.Array) -> jax.Array:
         """(B, H, W, C+G) planning tensor -> (B, H, W, F) UNet input features.
 
@@ -257,13 +276,19 @@ class Denoiser(nn.Module):
         t = jnp.asarray(t)
         if t.shape != (b,):
             raise ValueError(f"t must have shape (B,) = ({b},), got {t.shape}")
-        want = 3 if cfg.context_dim else 2
-        if tokens.ndim != want or tokens.shape[0] != b:
-            what = f"(B={b}, L, {cfg.context_dim}) pretrained features" if cfg.context_dim \
-                else f"(B={b}, L) token ids"
-            raise ValueError(f"tokens must be {what}, got shape {tokens.shape}")
+        if isinstance(tokens, TextContext):
+            if tokens.features.shape[0] != b:
+                raise ValueError(f"the text context has batch {tokens.features.shape[0]}, x_t "
+                                 f"has {b}")
+            context, mask = tokens
+        else:
+            want = 3 if cfg.context_dim else 2
+            if tokens.ndim != want or tokens.shape[0] != b:
+                what = f"(B={b}, L, {cfg.context_dim}) pretrained features" if cfg.context_dim \
+                    else f"(B={b}, L) token ids"
+                raise ValueError(f"tokens must be {what}, got shape {tokens.shape}")
+            context, mask = self.text_encoder(tokens)
         x_t = x_t.astype(jnp.float32)
-        context, mask = self.text_encoder(tokens)
         if self.config.token_classes and self.is_initializing():
             self.token_head(context)  # create its params with the rest
         feats = self.encode_grid(x_t)
@@ -361,6 +386,10 @@ class ModuleApply:
     def __call__(self, params, x_t, t, tokens):
         return self.model.apply({"params": params}, x_t, t, tokens)
 
+    def prepare(self, params, tokens):
+        """The model's :class:`TextContext` of tokens (B, ...) (:meth:`Denoiser.encode_text`)."""
+        return self.model.apply({"params": params}, tokens, method="encode_text")
+
 
 class LoadedDenoiser(struct.PyTreeNode):
     """Everything needed to plan with a trained denoiser (a pytree: params and schedule are
@@ -392,13 +421,26 @@ class LoadedDenoiser(struct.PyTreeNode):
     def num_gen_channels(self) -> int:
         return int(self.plan_shape[-1])
 
+    def prepare(self, tokens):
+        """What a planner keeps of one episode's instruction (tokens int32 (L,), or float32
+        (L, D) features): the tokens as they are, or, for a denoiser on pretrained features
+        (``DenoiserConfig.context_dim`` > 0), the :class:`TextContext` its UNet cross-attends
+        to ((L, text_dim), (L,)): the text part of the network then runs once per episode
+        instead of at every denoiser call."""
+        if not getattr(self.model_config, "context_dim", 0) or not hasattr(self.apply_fn,
+                                                                         "prepare"):
+            return tokens
+        context = self.apply_fn.prepare(self.params, jnp.asarray(tokens)[None])
+        return jax.tree.map(lambda a: a[0], context)
+
     def eps_fn(self, tokens: jax.Array) -> Callable[[jax.Array, jax.Array], jax.Array]:
         """The ``denoise_fn(x_t (B, H, W, C+G), t (B,)) -> eps (B, H, W, C+G)`` that
         ``diffplan.sample`` expects (zeros on the condition channels), whatever the network
-        predicts. tokens: int32 (B, L), or float32 (B, L, D) features for a denoiser with
-        context_dim D (B = 1 broadcasts)."""
+        predicts. tokens: int32 (B, L), float32 (B, L, D) features for a denoiser with
+        context_dim D, or their TextContext (:meth:`prepare`) (B = 1 broadcasts)."""
         def denoise_fn(x_t, t):
-            toks = jnp.broadcast_to(tokens, (x_t.shape[0],) + tokens.shape[1:])
+            toks = jax.tree.map(lambda a: jnp.broadcast_to(a, (x_t.shape[0],) + a.shape[1:]),
+                                tokens)
             out = self.apply_fn(self.params, x_t, t, toks)
             return _sampler_eps(out, x_t, t, self.num_cond_channels, self.prediction,
                                 self.schedule)

@@ -41,6 +41,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from diffplan import bert
+
 __all__ = ["split_sentences", "SentenceTable", "assemble", "assemble_batch",
            "InstructionEncoder", "encoder_record", "load_instruction_encoder", "CACHE_DIR"]
 
@@ -53,6 +55,8 @@ COLUMNS = 16
 FORMAT = 1
 """Version of the cached tables' layout (part of their key)."""
 _SENTENCE_END = re.compile(r"(?<=[.?!])\s+")
+_encode = jax.jit(bert.features, static_argnames="config")
+"""The encoder's forward, one compiled program per width, shared by every InstructionEncoder."""
 
 
 def split_sentences(text: str) -> list[str]:
@@ -135,7 +139,6 @@ class InstructionEncoder:
             cache_dir or os.environ.get("DIFFPLAN_TEXT_CACHE", CACHE_DIR))
         self._pieces: dict[str, np.ndarray] = {}
         self._features: dict[str, np.ndarray] = {}
-        self._program = jax.jit(encoder.apply)
 
     @property
     def dim(self) -> int:
@@ -176,7 +179,8 @@ class InstructionEncoder:
                 for i, s in enumerate(chunk + [chunk[0]] * (CHUNK - len(chunk))):
                     n = len(self._pieces[s])
                     ids[i, :n], mask[i, :n] = self._pieces[s], True
-                out = np.asarray(self._program(self.encoder.params, ids, mask))
+                out = np.asarray(_encode(self.encoder.params, ids, mask,
+                                         config=self.encoder.config))
                 for i, s in enumerate(chunk):
                     n = len(self._pieces[s])
                     self._features[s] = out[i, :n].astype(np.float16)

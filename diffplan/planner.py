@@ -165,8 +165,10 @@ class PlannerState(struct.PyTreeNode):
     """What the planner carries from one move to the next, for one episode (leading batch
     axes when vmapped).
 
-    key: the episode's PRNG key. tokens: int32 (L,) the instruction (or float32 (L, D) its
-      pretrained features, for a denoiser with ``DenoiserConfig.context_dim`` D).
+    key: the episode's PRNG key. tokens: int32 (L,) the instruction; for a denoiser on
+      pretrained features (``DenoiserConfig.context_dim`` > 0) the
+      ``diffplan.denoiser.TextContext`` its UNet cross-attends to, computed from the (L, D)
+      features once, in ``init`` (``LoadedDenoiser.prepare``).
     plan: float32 (H, W, G) the current plan (zeros before the first).
     condition: float32 (H, W, C) the condition it was made from (zeros before the first).
     move: int32 () calls of ``plan`` so far (moves). calls: int32 () denoiser calls spent.
@@ -254,10 +256,12 @@ class Planner(struct.PyTreeNode):
         if not dim and not (tokens.ndim == 1 or (features and config is None)):
             raise ValueError(f"tokens must be int32 (L,) (one episode; vmap for a batch), got "
                              f"shape {tokens.shape}")
+        tokens = tokens.astype(jnp.float32 if features else jnp.int32)
+        if isinstance(self.denoiser, LoadedDenoiser):
+            tokens = self.denoiser.prepare(tokens)  # features: the text context, once
         zero = jnp.zeros((), jnp.int32)
         h, w, _ = self.plan_shape
-        return PlannerState(key=key, tokens=tokens.astype(jnp.float32 if features
-                                                          else jnp.int32),
+        return PlannerState(key=key, tokens=tokens,
                             plan=jnp.zeros(self.plan_shape, jnp.float32),
                             condition=jnp.zeros((h, w, self.denoiser.num_cond_channels),
                                                 jnp.float32),
@@ -379,7 +383,8 @@ class Planner(struct.PyTreeNode):
         def row(i):
             score = None if rank is None else (lambda plans: rank(i, plans))
             prev = None if previous is None else previous[i]
-            return self._draw(keys[i], conditions[i], tokens[i], prev, score)
+            return self._draw(keys[i], conditions[i], jax.tree.map(lambda a: a[i], tokens),
+                              prev, score)
 
         return jax.vmap(row)
 
@@ -451,6 +456,7 @@ class Planner(struct.PyTreeNode):
         if previous is not None:
             kwargs = dict(x_init=jnp.concatenate([condition, previous], axis=-1)[None],
                           start_step=cfg.warm_start_step, num_steps=cfg.warm_steps)
-        x0 = sample(den.eps_fn(tokens[None]), den.schedule, key, x_known, known_mask,
+        x0 = sample(den.eps_fn(jax.tree.map(lambda a: a[None], tokens)), den.schedule, key,
+                    x_known, known_mask,
                     eta=cfg.eta, clip_x0=cfg.clip_x0, **kwargs)
         return x0[0, ..., c:]

@@ -171,7 +171,9 @@ def test_padding_rows_do_not_change_the_features_denoisers_output():
 
 
 def test_planner_takes_features_once_and_refuses_the_wrong_input():
-    from diffplan.denoiser import LoadedDenoiser, ModuleApply
+    """Planner.init keeps the text context the UNet cross-attends to (computed once per
+    episode); a denoiser call on it equals one on the features themselves."""
+    from diffplan.denoiser import LoadedDenoiser, ModuleApply, TextContext
     from diffplan.planner import Planner, PlannerConfig
     from diffplan.schedule import cosine_schedule
 
@@ -180,12 +182,22 @@ def test_planner_takes_features_once_and_refuses_the_wrong_input():
                          apply_fn=ModuleApply(model), plan_shape=(16, 16, 3),
                          model_config=model.config)
     planner = Planner(den, PlannerConfig(mode="one_shot", num_steps=2))
-    feats = jnp.zeros((FEATURE_TOKENS, 384)).at[:5].set(1.0)
-    state = jax.vmap(planner.init)(jax.random.split(jax.random.PRNGKey(0), 2),
-                                   jnp.stack([feats, feats]))
-    assert state.tokens.shape == (2, FEATURE_TOKENS, 384) and state.tokens.dtype == jnp.float32
+    key = jax.random.PRNGKey(3)
+    feats = jax.random.normal(key, (2, FEATURE_TOKENS, 384)).at[:, 17:].set(0.0)
+    state = jax.vmap(planner.init)(jax.random.split(jax.random.PRNGKey(0), 2), feats)
+    assert isinstance(state.tokens, TextContext)
+    assert state.tokens.features.shape == (2, FEATURE_TOKENS, model.config.text_dim)
+    np.testing.assert_array_equal(np.asarray(state.tokens.mask), np.asarray(
+        jnp.any(feats != 0, -1)))
+    x = jax.random.normal(jax.random.fold_in(key, 1), (2, 16, 16, 8))
+    t = jnp.array([5, 50])
+    direct = den.eps_fn(feats)(x, t)
+    prepared = den.eps_fn(state.tokens)(x, t)
+    np.testing.assert_allclose(np.asarray(prepared), np.asarray(direct), atol=1e-4)
     plan, _ = jax.vmap(planner.plan)(state, jnp.zeros((2, 16, 16, 5)))
     assert plan.shape == (2, 16, 16, 3) and np.all(np.isfinite(np.asarray(plan)))
+    batch_plans, _ = planner.plan_batch(state, jnp.zeros((2, 16, 16, 5)))
+    np.testing.assert_allclose(np.asarray(batch_plans), np.asarray(plan), atol=1e-4)
     with pytest.raises(ValueError) as e:
         planner.init(jax.random.PRNGKey(0), jnp.ones(24, jnp.int32))
     assert "reads pretrained features" in one_line(e)

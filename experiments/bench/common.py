@@ -40,7 +40,9 @@ LEGENDS = {
                     ("compile s", FIRST_CALL)),
     "train_text": (("ms", "milliseconds per call, median over the alternating rounds, "
                           "compilation excluded"),
-                   ("vs tokens", "ratio to the token-id model's median in the same rounds")),
+                   ("vs tokens", "ratio to the token-id model's median in the same rounds"),
+                   ("cpu ms", "the process's CPU milliseconds per call (all threads), median"),
+                   ("cpu vs", "its ratio to the token-id model's")),
 }
 """What each benchmark table's columns mean (experiments.harness.tables.legend)."""
 

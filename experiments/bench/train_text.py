@@ -5,11 +5,14 @@ size otherwise), each part timed alternately in one process so that the machine'
 on both alike; then the encoder's time per instruction.
 
 Parts (median ms over --split-repeats rounds; in each round every variant once, after
-warm-up): the full training step as diffplan.train.train runs it (the batch drawn, with the
+warm-up; wall time and the process's CPU time, which other jobs on a shared machine disturb
+less): the full training step as diffplan.train.train runs it (the batch drawn, with the
 features assembled from the sentence table inside the jitted generation, then the step), and
-one denoiser call at the evaluation batch (a plan's forward, the per-move planning cost). The
-encoder: a fresh encoder (nothing in memory) encodes N new instructions (P-MO2G, training and
-held-out phrasings) in one batch, and one instruction alone.
+one denoiser call at the evaluation batch as the planner makes it (a plan's forward, the
+per-move planning cost; for the features model on the text context the planner computed once
+per episode, ``LoadedDenoiser.prepare``). The encoder: a fresh encoder (nothing in memory)
+encodes N new instructions (P-MO2G, training and held-out phrasings) in one batch, and one
+instruction alone.
 """
 from __future__ import annotations
 
@@ -49,6 +52,8 @@ def _variant(world, model_size: str, batch_size, settings, text: str, eval_batch
     x = jax.numpy.tile(batch.x0[:1], (eval_batch, 1, 1, 1))
     tokens = jax.numpy.tile(batch.tokens[:1], (eval_batch,) + (1,) * (batch.tokens.ndim - 1))
     t = jax.numpy.zeros((eval_batch,), jax.numpy.int32)
+    if sentences is not None:  # what the planner keeps: the text context, computed once
+        tokens = model.apply({"params": state.params}, tokens, method="encode_text")
     forward = jax.jit(lambda p, x, t, tokens: model.apply({"params": p}, x, t, tokens))
     return ((lambda key: train_step.placed(state, *draw(key, table))),
             (lambda: forward(state.params, x, t, tokens)), config.batch_size)
@@ -97,31 +102,39 @@ def compare(world, args, eval_batch: int = 64, encoder_count: int = 256) -> dict
                          "pretrained features are not wired yet)")
     built = {v: _variant(world, args.model_size, args.batch_size, args.set, v, eval_batch)
              for v in VARIANTS}
-    times = {part: {v: [] for v in VARIANTS} for part in ("full step", "denoiser call")}
+    parts = ("full step", "denoiser call")
+    wall = {part: {v: [] for v in VARIANTS} for part in parts}
+    cpu = {part: {v: [] for v in VARIANTS} for part in parts}
     for v, (step, call, _) in built.items():  # compile and warm up
         for i in range(2):
             jax.block_until_ready(step(step_key(0, i)))
             jax.block_until_ready(call())
     for r in range(args.split_repeats):
         for v, (step, call, _) in built.items():
-            begin = time.perf_counter()
-            jax.block_until_ready(step(step_key(0, 2 + r)))
-            times["full step"][v].append(time.perf_counter() - begin)
-            begin = time.perf_counter()
-            jax.block_until_ready(call())
-            times["denoiser call"][v].append(time.perf_counter() - begin)
-    ms = {part: {v: 1000.0 * float(np.median(x)) for v, x in by.items()}
-          for part, by in times.items()}
+            for part, fn in zip(parts, (lambda: step(step_key(0, 2 + r)), call)):
+                begin, begin_cpu = time.perf_counter(), time.process_time()
+                jax.block_until_ready(fn())
+                wall[part][v].append(time.perf_counter() - begin)
+                cpu[part][v].append(time.process_time() - begin_cpu)
+
+    def medians(times):
+        return {part: {v: 1000.0 * float(np.median(x)) for v, x in by.items()}
+                for part, by in times.items()}
+
     return {"world": world.name, "model_size": args.model_size,
             "batch_size": built["tokens"][2], "eval_batch": eval_batch,
-            "rounds": args.split_repeats, "ms": ms, "encoder": _encoder_times(encoder_count)}
+            "rounds": args.split_repeats, "ms": medians(wall), "cpu_ms": medians(cpu),
+            "encoder": _encoder_times(encoder_count)}
 
 
 def format_compare(result: dict) -> str:
-    rows = [{"part": f"{part} ({v})", "ms": ms, "ratio": ms / by["tokens"]}
+    cpu = result["cpu_ms"]
+    rows = [{"part": f"{part} ({v})", "ms": ms, "ratio": ms / by["tokens"],
+             "cpu": cpu[part][v], "cpu_ratio": cpu[part][v] / cpu[part]["tokens"]}
             for part, by in result["ms"].items() for v, ms in by.items()]
     columns = (("part", "{:<28}", "part"), ("ms", "{:>9.2f}", "ms"),
-               ("ratio", "{:>10.3f}", "vs tokens"))
+               ("ratio", "{:>10.3f}", "vs tokens"), ("cpu", "{:>9.2f}", "cpu ms"),
+               ("cpu_ratio", "{:>10.3f}", "cpu vs"))
     enc = result["encoder"]
     return "\n".join([
         f"token ids vs pretrained features ({result['world']}, {result['model_size']} model, "

@@ -191,6 +191,7 @@ def pooled_row(method, outs: dict, episodes_by_seed: dict, has_reference: bool,
 def contract_arrays(episodes, grid_config) -> dict:
     """The episodes in the export format of contract 1 (numpy)."""
     from envs.gridworld import env, grammar
+    from envs.gridworld.sentences import episode_texts
 
     reset = jax.jit(jax.vmap(lambda e: env.reset(e, grid_config)))
     seen0 = np.asarray(reset(episodes).seen)
@@ -202,7 +203,8 @@ def contract_arrays(episodes, grid_config) -> dict:
         "expert_path": np.asarray(episodes.expert_path, bool),
         "expert_length": np.asarray(episodes.expert_length, np.int32),
         "visible0": seen0.astype(bool),
-        "instruction": np.array([grammar.decode(t) for t in np.asarray(episodes.tokens)]),
+        # Rendered from the phrasing: the tokens of a natural-language episode are canonical.
+        "instruction": np.array(episode_texts(episodes, grid_config.setting)),
         "object_names": np.array(grammar.OBJECT_NAMES),
     }
 
