@@ -249,7 +249,10 @@ class Planner(struct.PyTreeNode):
         tokens = jnp.asarray(tokens)
         config = getattr(self.denoiser, "model_config", None)
         dim = int(getattr(config, "context_dim", 0) or 0)
-        features = tokens.ndim == 2
+        # (L, D) features: what a features denoiser reads; without a model config (a
+        # hand-written denoiser) only a float array is taken as features, an int one is a
+        # batch of token ids and refused.
+        features = tokens.ndim == 2 and (bool(dim) or jnp.issubdtype(tokens.dtype, jnp.floating))
         if dim and not (features and tokens.shape[-1] == dim):
             raise ValueError(f"this denoiser reads pretrained features (L, {dim}) (one "
                              f"episode; vmap for a batch), got shape {tokens.shape}")
