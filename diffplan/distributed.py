@@ -24,6 +24,7 @@ them sees.
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Any, Optional
 
 import jax
@@ -47,8 +48,10 @@ def detected_cluster() -> Optional[str]:
         if getattr(env, "opt_in_only_method", False):
             continue
         try:
-            if env.is_env_present() and int(env.get_process_count()) > 1:
-                return env.__name__
+            with warnings.catch_warnings():  # e.g. a Kubernetes pod without `kubernetes`
+                warnings.simplefilter("ignore")
+                if env.is_env_present() and int(env.get_process_count()) > 1:
+                    return env.__name__
         except Exception:  # noqa: BLE001 - a detector that cannot tell is no cluster
             continue
     return None

@@ -46,13 +46,14 @@ def _evaluate(spec, denoiser, mode: str, seeds, episodes: int, batch: int, progr
 
 def _run(spec, args, n: int, mode: str, seeds, name: str, progress: bool) -> dict:
     """The row of demos_N on seeds, read from demos_N/<name>.json if it holds the same
-    seeds, episodes and mode, else trained (resuming) and evaluated, and written."""
+    seeds, episodes, mode and detours, else trained (resuming) and evaluated, and written."""
     from diffplan.train import ConfigMismatchError
     from experiments.babyai.baselines import denoiser_minutes
 
     run_dir = os.path.join(args.sweep_dir, f"demos_{n}")
     path = os.path.join(run_dir, f"{name}.json")
-    key = {"seeds": list(seeds), "episodes": args.episodes, "mode": mode, "demos": n}
+    key = {"seeds": list(seeds), "episodes": args.episodes, "mode": mode, "demos": n,
+           "detour_prob": spec.detour_prob if args.detour_prob is None else args.detour_prob}
     done = _read(path)
     if done is not None and all(done.get(k) == v for k, v in key.items()):
         return done
@@ -86,7 +87,7 @@ def run_sweep(spec, args, seeds, mode: str, progress: bool) -> dict:
     needed = [p for p in papers if p.get("what") == "demos to reach 99%"]
     result = {"experiment": f"{spec.name}_demos", "level": spec.level, "mode": mode,
               "episodes": args.episodes, "seed": validation[0], "seeds": list(seeds),
-              "target_SR": TARGET, "detour_prob": args.detour_prob, "rows": rows,
+              "target_SR": TARGET, "detour_prob": rows[0]["detour_prob"], "rows": rows,
               "fewest_demos": None if best is None else best["demos"],
               "evaluation": evaluation, "published": papers,
               "ratio_to_published": ([best["demos"] / p["demos"] for p in needed]

@@ -24,7 +24,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "demonstrations and the BabyAI bot on minigrid's own episodes. The planner "
                     "and BC act in the jitted port; every executed action is then stepped in "
                     "minigrid, whose reward (> 0: success), termination and truncation are "
-                    "what the table reports, with the port/minigrid mismatches (must be 0).")
+                    "what the table reports, with the port/minigrid mismatches (must be 0). "
+                    "--train trains ours on the level's cached minigrid layouts, then BC on the "
+                    "same demonstrations; --demos-sweep measures sample efficiency.")
     p.add_argument("--level", required=True, metavar="LEVEL",
                    help=f"the level: {', '.join(LEVELS)} (or its minigrid id, e.g. "
                         "BabyAI-GoTo-v0)")

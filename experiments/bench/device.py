@@ -6,7 +6,7 @@ rollout, with the device named. Run it on a machine with an accelerator (``pip i
   * on-the-fly: the main job's mode (``compile_p_mo2g --modes on_the_fly``: the shipped
     checkpoint, 10 denoising steps per plan, a plan before every move) on the CLIs' slot pool
     of B slots (``diffplan.rollouts.StreamRollout``) fed 2 x B P-MO2G validation episodes, so
-    every slot is busy: after one warm-up move, ``--moves`` moves are timed. Episodes per
+    every slot is busy: the move program compiled first, ``--moves`` moves are timed. Episodes per
     second = B / (seconds per move x L), L the mean moves per episode of the same mode
     measured on ``--length-episodes`` whole episodes (that run's own episodes per second,
     end to end, is printed beside it).
@@ -31,6 +31,7 @@ from experiments.bench import common as bc
 
 SEED = 1000
 """Validation episodes (never an evaluation seed)."""
+PARTS = ("on_the_fly", "train", "kuka")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,8 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="whole on-the-fly episodes run to measure the moves per episode")
     p.add_argument("--train-steps", type=int, default=5, help="timed training steps")
     p.add_argument("--kuka-episodes", type=int, default=4,
-                   help="episodes of the timed Kuka call (0: no Kuka row; compiling the MJX "
-                        "program takes ~5 GB)")
+                   help="episodes of the timed Kuka call (compiling its MJX program takes "
+                        "~6 GB)")
+    p.add_argument("--parts", type=bc.typed_list(str), default=list(PARTS),
+                   help=f"what to measure, comma-separated of {','.join(PARTS)}")
     bc.add_output_flags(p)
     return p
 
@@ -79,7 +82,7 @@ def episode_length(spec, denoiser, task, n: int) -> tuple[float, float]:
 
 
 def pool_move_seconds(spec, denoiser, task, slots: int, moves: int) -> tuple[float, float]:
-    """(median seconds per move of a full pool of `slots` slots, first-move seconds)."""
+    """(median seconds per move of a full pool of `slots` slots, compile seconds)."""
     import jax
 
     from diffplan.planner import Planner
@@ -99,14 +102,14 @@ def pool_move_seconds(spec, denoiser, task, slots: int, moves: int) -> tuple[flo
     planner, keys, episodes = jax.device_put((planner, keys, episodes), device)
     carry = jax.device_put(jax.jit(stream.start)(planner, keys, episodes), device)
     begin = time.perf_counter()
-    carry = jax.block_until_ready(advance(planner, keys, episodes, carry))
-    first = time.perf_counter() - begin
+    advance = advance.lower(planner, keys, episodes, carry).compile()
+    compile_seconds = time.perf_counter() - begin
     times = []
     for _ in range(moves):
         begin = time.perf_counter()
         carry = jax.block_until_ready(advance(planner, keys, episodes, carry))
         times.append(time.perf_counter() - begin)
-    return statistics.median(times), first
+    return statistics.median(times), compile_seconds
 
 
 def train_steps_per_second(steps: int) -> tuple[float, int, float]:
@@ -156,34 +159,44 @@ def kuka_episodes_per_second(n: int) -> tuple[float, float]:
     return n / (time.perf_counter() - begin), first
 
 
-def main(argv=None) -> dict:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    bc.check_positive(parser, args, ("moves", "length_episodes", "train_steps"))
-    if args.kuka_episodes < 0:
-        parser.error(f"--kuka-episodes must be >= 0, got {args.kuka_episodes}")
-    bc.start(parser, args)
-    device = device_name()
-    print(f"device: {device}; {os.cpu_count()} CPU cores")
-    rows = []
+def on_the_fly_rows(args) -> list[dict]:
+    """The whole-episode run (L), then each batch size's full-pool moves; printed as they come."""
     spec, denoiser, task = _grid()
     length, whole = episode_length(spec, denoiser, task, args.length_episodes)
     print(f"on-the-fly, {args.length_episodes} whole episodes (batch {args.length_episodes}): "
           f"{length:.1f} moves per episode, {whole:.2f} episodes/s end to end", flush=True)
-    rows.append(dict(method="on_the_fly whole episodes", batch=args.length_episodes,
-                     per_second=whole, moves_per_episode=length))
+    rows = [dict(method="on_the_fly whole episodes", batch=args.length_episodes,
+                 per_second=whole, moves_per_episode=length)]
     for slots in args.batch_sizes:
-        move, first = pool_move_seconds(spec, denoiser, task, slots, args.moves)
+        move, compile_seconds = pool_move_seconds(spec, denoiser, task, slots, args.moves)
         rate = slots / (move * length)
         print(f"on-the-fly, batch {slots}: {rate:.2f} episodes/s ({move:.2f} s per move of "
-              f"{slots} slots, median of {args.moves}; first move {first:.1f} s)", flush=True)
+              f"{slots} slots, median of {args.moves} moves; compiled in {compile_seconds:.1f} "
+              "s)", flush=True)
         rows.append(dict(method="on_the_fly", batch=slots, per_second=rate,
-                         seconds_per_move=move, compile_seconds=first))
-    rate, batch, first = train_steps_per_second(args.train_steps)
-    print(f"training, default grid recipe (batch {batch}, default model): {rate:.2f} steps/s "
-          f"({args.train_steps} steps; first step {first:.1f} s)", flush=True)
-    rows.append(dict(method="train", batch=batch, per_second=rate, compile_seconds=first))
-    if args.kuka_episodes:
+                         seconds_per_move=move, compile_seconds=compile_seconds))
+    return rows
+
+
+def main(argv=None) -> dict:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    bc.check_positive(parser, args, ("moves", "length_episodes", "train_steps",
+                                     "kuka_episodes"))
+    if not args.parts or set(args.parts) - set(PARTS):
+        parser.error(f"--parts must name some of {','.join(PARTS)}, got {args.parts}")
+    bc.start(parser, args)
+    device = device_name()
+    print(f"device: {device}; {os.cpu_count()} CPU cores")
+    rows = []
+    if "on_the_fly" in args.parts:
+        rows += on_the_fly_rows(args)
+    if "train" in args.parts:
+        rate, batch, first = train_steps_per_second(args.train_steps)
+        print(f"training, default grid recipe (batch {batch}, default model): {rate:.2f} "
+              f"steps/s ({args.train_steps} steps; first step {first:.1f} s)", flush=True)
+        rows.append(dict(method="train", batch=batch, per_second=rate, compile_seconds=first))
+    if "kuka" in args.parts:
         rate, first = kuka_episodes_per_second(args.kuka_episodes)
         print(f"kuka rollout, stacking on-the-fly ({args.kuka_episodes} episodes per call): "
               f"{rate:.3f} episodes/s (first call {first:.1f} s)", flush=True)

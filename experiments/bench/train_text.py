@@ -59,9 +59,10 @@ def _variant(world, model_size: str, batch_size, settings, text: str, eval_batch
             (lambda: forward(state.params, x, t, tokens)), config.batch_size)
 
 
-def _encoder_times(count: int) -> dict:
-    """ms per instruction of a fresh encoder on `count` new P-MO2G instructions in one batch,
-    and on one instruction alone (compilation excluded: a warm-up encoder runs first)."""
+def _encoder_times(count: int, alone: int = 5) -> dict:
+    """ms (wall and CPU) per instruction of a fresh encoder on `count` new P-MO2G instructions
+    in one batch, and on one instruction alone (the median of `alone` fresh encoders);
+    compilation excluded: a warm-up encoder runs first."""
     import numpy as np
 
     from diffplan.instruction import InstructionEncoder
@@ -75,17 +76,19 @@ def _encoder_times(count: int) -> dict:
         texts.append(grammar.render("p_mo2g", int(rng.integers(12)), int(ref), int(target),
                                     int(rng.integers(8))))
     base = instruction_encoder().encoder
-    InstructionEncoder(base, FEATURE_TOKENS).encode(texts[:8])  # compile every width
-    fresh = InstructionEncoder(base, FEATURE_TOKENS)
-    begin = time.perf_counter()
-    fresh.encode(texts[1:])
-    batch = (time.perf_counter() - begin) / count
-    fresh = InstructionEncoder(base, FEATURE_TOKENS)
-    begin = time.perf_counter()
-    fresh.encode(texts[0])
-    alone = time.perf_counter() - begin
-    return {"instructions": count, "ms_per_instruction_batch": 1000.0 * batch,
-            "ms_one_instruction": 1000.0 * alone,
+    InstructionEncoder(base, FEATURE_TOKENS).encode(texts)  # compile every width
+
+    def timed(batch):
+        fresh = InstructionEncoder(base, FEATURE_TOKENS)
+        begin, begin_cpu = time.perf_counter(), time.process_time()
+        fresh.encode(batch)
+        return time.perf_counter() - begin, time.process_time() - begin_cpu
+
+    batch = timed(texts[1:])
+    one = np.median([timed(texts[0]) for _ in range(alone)], axis=0)
+    return {"instructions": count, "ms_per_instruction_batch": 1000.0 * batch[0] / count,
+            "cpu_ms_per_instruction_batch": 1000.0 * batch[1] / count,
+            "ms_one_instruction": 1000.0 * one[0], "cpu_ms_one_instruction": 1000.0 * one[1],
             "sentences_per_instruction": float(np.mean([len(fresh.sentences_of(t))
                                                         for t in texts]))}
 
@@ -141,6 +144,8 @@ def format_compare(result: dict) -> str:
         f"training batch {result['batch_size']}, denoiser call at batch {result['eval_batch']}; "
         f"{result['rounds']} alternating rounds):",
         tables.format_table(rows, columns, LEGENDS["train_text"]),
-        f"text encoder: {enc['ms_per_instruction_batch']:.1f} ms per instruction in a batch of "
+        f"text encoder: {enc['ms_per_instruction_batch']:.1f} ms (CPU "
+        f"{enc['cpu_ms_per_instruction_batch']:.1f}) per instruction in a batch of "
         f"{enc['instructions']} new P-MO2G instructions ({enc['sentences_per_instruction']:.2f} "
-        f"sentences each), {enc['ms_one_instruction']:.1f} ms for one alone"])
+        f"sentences each), {enc['ms_one_instruction']:.1f} ms (CPU "
+        f"{enc['cpu_ms_one_instruction']:.1f}) for one alone"])

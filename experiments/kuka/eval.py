@@ -90,11 +90,10 @@ def run_planner(task, planner, episodes, seed: int, batch: int, bar=None, run=No
     seconds. Returns the final physical states (as :func:`run_expert`, without frames) plus
     denoiser_calls, num_plans and unread (n,). run: the jitted (planner, keys, episodes, token)
     -> Rollout (default harness.rollout_fn(task, mesh=the devices' mesh)). With several
-    devices (of one process or of all, diffplan.distributed) a call holds `batch` episodes
-    per device, each device rolling out and settling its own. reader: (ReaderConfig, params)
-    of a reader that restates each instruction canonically first
-    (envs.kuka.reader.read_episodes; unread: the episodes whose instruction it could not
-    restate, not acted on).
+    devices (of one process or of all, diffplan.distributed) a call holds `batch` episodes per
+    device, each device rolling out and settling its own. reader: (ReaderConfig, params) of a reader
+    that restates each instruction canonically first (envs.kuka.reader.read_episodes; unread:
+    the episodes whose instruction it could not restate, not acted on).
 
     Not the slot pool (diffplan.rollout_stream): its jitted program, with a physics reset and
     a pick-and-place in one loop body, needed more than 7 GB of memory to compile here (the

@@ -16,6 +16,7 @@ import argparse
 import json
 import os
 
+from envs.babyai.config import LEVELS
 from experiments.gridworld import eval as gridworld_eval
 from experiments.kuka import spec as ks, tables as kuka_tables
 from experiments.gridworld.spec import FAR_TRAINING_NAME, MODE_REPLAN, TRAINING_NAME
@@ -59,6 +60,13 @@ WORLDS = {
              "The Kuka block-world denoiser shipped with diffplan (one model for stacking and "
              "rearrangement, single and multiple constraints, canonical and paraphrased "
              "instructions)."),
+    **{f"babyai_{level}{bc}": (
+        os.path.join(CHECKPOINT_ROOT, f"babyai_{level}{bc}"),
+        f"python -m experiments.babyai --level {level} --train",
+        f"The BabyAI {level} " + ("BC baseline (trained with ours, on the same demonstrations, "
+                                  "until it converged or used our training minutes)." if bc
+                                  else "denoiser (minigrid's level; every number measured in "
+                                       "minigrid).")) for level in LEVELS for bc in ("", "_bc")},
 }
 
 
@@ -67,7 +75,15 @@ def _is_kuka(result) -> bool:
     return str(result.get("experiment", "")).startswith("kuka_")
 
 
+def _is_babyai(result) -> bool:
+    return str(result.get("experiment", "")).startswith("babyai_")
+
+
 def _result_table(result) -> str:
+    if _is_babyai(result):
+        from experiments.babyai.tables import format_table
+
+        return format_table(result["rows"])
     if _is_kuka(result):
         return kuka_tables.format_table(result["rows"])
     return gridworld_eval.format_table(result["rows"])
@@ -103,6 +119,9 @@ def _result_command(result) -> str:
         extra += f" --samples {result['samples']}"
     if _is_kuka(result):
         extra += _kuka_flags(result)
+    if _is_babyai(result):
+        return (f"python -m experiments.babyai --level {result['level']} --episodes "
+                f"{result['episodes']} {seed_flag}")
     return (f"python -m experiments.{result['experiment']} --episodes {result['episodes']} "
             f"{seed_flag}{extra}")
 
@@ -153,8 +172,9 @@ def main(argv=None):
     p.add_argument("--out", default=None,
                    help="destination (default checkpoints/compile_gridworld, "
                         "checkpoints/compile_gridworld_far with --world gridworld_far, "
-                        "checkpoints/<that>_pretrained with --world <that>_pretrained, or "
-                        "checkpoints/kuka with --world kuka)")
+                        "checkpoints/<that>_pretrained with --world <that>_pretrained, "
+                        "checkpoints/kuka with --world kuka, or checkpoints/<world> with a "
+                        "babyai_<level>[_bc] world)")
     p.add_argument("--results", action="append", default=[], metavar="JSON",
                    help="experiment results (contract 2) to record in NOTE.md; repeatable")
     p.add_argument("--command", default=None,
