@@ -55,6 +55,12 @@ WORLDS = {
         "python -m experiments.compile_p_mo2g_far --train --text pretrained",
         "The P-MO2G-far denoiser on the frozen pretrained text encoder's features (trained on "
         "P-MO2G-far beside the paper's three settings)."),
+    "gridworld_goal": (os.path.join(CHECKPOINT_ROOT, "baselines", "goal"),
+                       "python -m experiments.compile_p_mo2g --train --objective goal",
+                       "The learned-goal baseline (the grid-world denoiser's network, config, "
+                       "batches, optimiser and steps, trained to classify the goal and sub-goal "
+                       "cells instead of in-painting a plan; evaluated with --num-steps 1 "
+                       "through the same planner, triggers and psi)."),
     "kuka": (os.path.join(CHECKPOINT_ROOT, "kuka"),
              "python -m experiments.kuka_stacking --train",
              "The Kuka block-world denoiser shipped with diffplan (one model for stacking and "
@@ -173,6 +179,7 @@ def main(argv=None):
                    help="destination (default checkpoints/compile_gridworld, "
                         "checkpoints/compile_gridworld_far with --world gridworld_far, "
                         "checkpoints/<that>_pretrained with --world <that>_pretrained, "
+                        "checkpoints/baselines/goal with --world gridworld_goal, "
                         "checkpoints/kuka with --world kuka, or checkpoints/<world> with a "
                         "babyai_<level>[_bc] world)")
     p.add_argument("--results", action="append", default=[], metavar="JSON",
