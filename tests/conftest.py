@@ -72,9 +72,118 @@ def pytest_terminal_summary(terminalreporter):
         return
     main = "controller" if _WORKER_PEAKS else "pytest"
     peaks = {**dict(sorted(_WORKER_PEAKS.items())), main: _peak_rss_gb()}
+    if _TIMELINE:
+        _write_timeline()
     terminalreporter.write_line(
         "peak resident memory: " + ", ".join(f"{k} {v:.1f} GB" for k, v in peaks.items())
-        + f" (sum {sum(peaks.values()):.1f} GB)")
+        + f" (sum {sum(peaks.values()):.1f} GB; at one moment at most "
+        + (f"{_TREE[0].stop():.1f} GB)" if _TREE else "unknown)"))
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--timeline", metavar="PATH", default=None,
+        help="write one JSON line per test phase to PATH: the worker that ran it, its start and "
+             "end in seconds from the session's start, the phase and the test id (where the "
+             "suite's wall time goes: which worker ran what, and when it went idle)")
+
+
+_TIMELINE: dict = {}
+
+
+def _tree_rss_gb(pid: int) -> float:
+    """Resident memory of a process and its descendants, in GB (0 where /proc is not there)."""
+    total, stack = 0.0, [pid]
+    while stack:
+        pid = stack.pop()
+        try:
+            with open(f"/proc/{pid}/status") as f:
+                total += next((int(ln.split()[1]) for ln in f if ln.startswith("VmRSS:")), 0)
+            for task in os.listdir(f"/proc/{pid}/task"):
+                with open(f"/proc/{pid}/task/{task}/children") as f:
+                    stack += [int(c) for c in f.read().split()]
+        except (OSError, ValueError):
+            continue
+    return total / 2 ** 20
+
+
+class _TreeMemory:
+    """The largest sum of the test processes' resident memory at one moment (sampled every
+    half second by a thread of the controller): what the machine must have free for the suite."""
+
+    def __init__(self):
+        import threading
+
+        self.peak, self._stop = 0.0, threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop.wait(0.5):
+            self.peak = max(self.peak, _tree_rss_gb(os.getpid()))
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join()
+        return max(self.peak, _tree_rss_gb(os.getpid()))
+
+
+_TREE: list = []
+
+
+_COMPILES = {"programs": 0, "seconds": 0.0, "cache_hits": 0}
+"""With --timeline: this process's XLA compilations (count, seconds; persistent-cache loads
+included, and counted apart) since its last test ended."""
+
+
+def _count_compiles():
+    from jax import monitoring
+
+    def duration(event, seconds, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            _COMPILES["programs"] += 1
+            _COMPILES["seconds"] += seconds
+
+    def event(name, **_):
+        if name == "/jax/compilation_cache/cache_hits":
+            _COMPILES["cache_hits"] += 1
+
+    monitoring.register_event_duration_secs_listener(duration)
+    monitoring.register_event_listener(event)
+
+
+def pytest_sessionstart(session):
+    if session.config.getoption("--timeline", None):
+        _count_compiles()
+    if hasattr(session.config, "workeroutput"):
+        return
+    _TREE.append(_TreeMemory())
+    path = session.config.getoption("--timeline", None)
+    if path:
+        import time
+
+        _TIMELINE.update(path=path, t0=time.time(), lines=[])
+
+
+def pytest_runtest_logreport(report):
+    """On the controller (or a run without workers): the phase's worker, start, end and id."""
+    if not _TIMELINE or not hasattr(report, "start"):
+        return
+    worker = getattr(getattr(report, "node", None), "gateway", None)
+    _TIMELINE["lines"].append({
+        "worker": worker.id if worker is not None else "main",
+        "start": round(report.start - _TIMELINE["t0"], 3),
+        "end": round(report.stop - _TIMELINE["t0"], 3),
+        "phase": report.when, "test": report.nodeid, "outcome": report.outcome,
+        **dict(report.user_properties).get("compiles", {})})
+
+
+def _write_timeline():
+    import json
+
+    with open(_TIMELINE["path"], "w") as f:
+        for line in _TIMELINE["lines"]:
+            f.write(json.dumps(line) + "\n")
 
 
 def _malloc_trim():
@@ -93,8 +202,13 @@ def pytest_runtest_teardown(item, nextitem):
     freed heap pages: compiling one MJX rollout left the process at 4.1 GB resident, 0.7 GB
     after malloc_trim, and a test worker that never trimmed grew to 13 GB while it held ~2 GB
     of live data. (A compile's own peak is unchanged; what goes is the high-water mark each
-    process kept for the rest of the run, which the two workers' budget adds up.)"""
+    process kept for the rest of the run, which the two workers' budget adds up.) With
+    --timeline, the test's compilations go into its teardown report."""
     _malloc_trim()
+    if item.config.getoption("--timeline", None):
+        item.user_properties.append(("compiles", dict(_COMPILES, seconds=round(
+            _COMPILES["seconds"], 2))))
+        _COMPILES.update(programs=0, seconds=0.0, cache_hits=0)
 
 
 MAX_MAPPINGS = 32768

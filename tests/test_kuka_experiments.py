@@ -149,7 +149,12 @@ def _check_planner_result(result, out, kind, modes, languages):
     assert main["method"] == "planner on-the-fly" + (", read" if data["reader"] else "")
     assert len(rows) == 2 * len(modes) * len(languages)
     for row in rows:
-        assert 0.0 <= row["SR_diffuser"] <= 100.0 and 0.0 <= row["SR"] <= 100.0
+        # Both are counts of the row's instructed constraints, in percent.
+        for key in ("SR", "SR_diffuser"):
+            count = row[key] * row["constraints"] / 100.0
+            assert 0 <= round(count) <= row["constraints"]
+            assert count == pytest.approx(round(count), abs=1e-6), (key, row)
+        assert row["constraints"] >= row["episodes"] == 4
         calls = row["denoiser_calls_per_episode"]
         if row["mode"] == "one_shot":
             assert calls == 10.0 and row["plans_per_episode"] == 1.0

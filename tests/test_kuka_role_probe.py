@@ -49,7 +49,10 @@ def test_a_tiny_run_writes_its_table_and_json(tmp_path, capsys):
     (row,) = result["rows"]
     assert result["extra"] == [extra]
     for key in ["training"] + [f"#{k}" for k in grammar.RELATION_SPLIT.unseen]:
-        assert 0.0 <= row[key] <= 100.0
+        # A rate is a count of probe.EVAL_SENTENCES sentences read right, in percent.
+        count = row[key] * probe.EVAL_SENTENCES / 100.0
+        assert 0 <= round(count) <= probe.EVAL_SENTENCES
+        assert count == pytest.approx(round(count), abs=1e-6), (key, row[key])
     out = capsys.readouterr().out
     assert "#11" in out and "taggers that read every development phrasing" in out
 

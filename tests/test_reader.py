@@ -155,7 +155,12 @@ def test_train_reader_cli_end_to_end(tmp_path, capsys):
     result = train_reader_cli.main(["--out", str(out), "--seeds", "0", "--steps", "2",
                                     "--json", str(tmp_path / "r.json"), "--no-progress"])
     assert set(result["read"]) == {"canonical", "paraphrased", "development"}
-    assert all(0.0 <= v <= 100.0 for v in result["read"].values())
+    # The recorded rates are the saved reader's, recomputed on the validation key.
+    config, params, _ = load_reader(str(out))
+    key = jax.random.PRNGKey(train_reader_cli.harness.VALIDATION_SEED)
+    for phrasing, rate in result["read"].items():
+        assert rate == reader.read_rate(config, params, key, train_reader_cli.READ_SENTENCES,
+                                        phrasing), phrasing
     printed = capsys.readouterr().out
     assert "restated canonically" in printed and "development" in printed
     assert load_reader(str(out))[2]["read_validation"] == result["read"]
