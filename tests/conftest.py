@@ -22,6 +22,10 @@ if str(ROOT) not in sys.path:
 from diffplan.jax_cache import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
+# One program compiled at a time per test process (experiments.harness.compiling): the two
+# workers keep both cores busy already, and a worker compiling two MJX programs at once
+# took that worker to 13 GB.
+os.environ.setdefault("DIFFPLAN_COMPILE_THREADS", "1")
 
 from xdist_scheduling import crash_diagnosis, make_scheduler  # noqa: E402
 

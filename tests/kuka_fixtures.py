@@ -53,3 +53,29 @@ def numpy_on(pos, held, top, bottom) -> bool:
     xy = np.hypot(*(pos[top, :2] - pos[bottom, :2]))
     gap = (pos[top, 2] - 0.03) - (pos[bottom, 2] + 0.03)
     return bool(xy < 0.1 and abs(gap) < 0.015 and not held[top] and not held[bottom])
+
+
+@functools.lru_cache(maxsize=None)
+def training_tokens(broad: bool, step: int) -> np.ndarray:
+    """Token ids (4 x 16, ...) of a batch of the shipped Kuka recipe (envs.kuka.training.Recipe,
+    its 16 shares; broad: its paraphrased shares drawing the language "broad", the grammar's
+    extra phrasings too) under PRNGKey(step). One compiled batch function per recipe serves
+    every test that reads training batches (tests/test_language_split.py,
+    tests/test_kuka_heldout.py)."""
+    import dataclasses
+
+    from diffplan import language
+    from envs.kuka.training import Recipe
+
+    recipe = Recipe()
+    if broad:
+        recipe = Recipe(specs=tuple(dataclasses.replace(s, language=language.BROAD)
+                                    if s.language == "paraphrased" else s
+                                    for s in recipe.specs))
+    return np.asarray(_batch_fn(recipe)(jax.random.PRNGKey(step), 4 * recipe.batch_multiple)
+                      .tokens)
+
+
+@functools.lru_cache(maxsize=None)
+def _batch_fn(recipe):
+    return jax.jit(recipe.batch_fn(), static_argnums=1)

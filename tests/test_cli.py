@@ -90,7 +90,7 @@ def test_harness_intervals_tables_and_keys():
                                   [jax.random.fold_in(stream, i) for i in (5, 1)])
 
 
-def test_compile_together_gives_the_jitted_programs():
+def test_compile_together_gives_the_jitted_programs(monkeypatch):
     """compiling.compile_together: one compiled program per argument set (compiled in
     threads), each computing what the jitted function computes on arguments of its shapes."""
     import jax
@@ -98,6 +98,8 @@ def test_compile_together_gives_the_jitted_programs():
 
     from experiments.harness import compiling
 
+    monkeypatch.setenv(compiling.THREADS_VARIABLE, "2")  # the suite's conftest sets 1
+    assert compiling.compile_threads() == 2
     fn = jax.jit(lambda x, k: x * k + 1)
     small, large = compiling.compile_together(fn, [(np.ones(3, np.float32), 2.0),
                                                  (np.ones((2, 4), np.float32), 2.0)])
@@ -109,3 +111,14 @@ def test_compile_together_gives_the_jitted_programs():
     assert compiling.compile_together(fn, []) == []
     (one,) = compiling.compile_together(fn, [(x, 1.0)], min_memory_gb=1e9)  # one at a time
     np.testing.assert_array_equal(one(x, 4.0), fn(x, 4.0))
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "two", ""])
+def test_compile_threads_refuses_what_is_not_a_positive_count(monkeypatch, value):
+    from experiments.harness import compiling
+
+    monkeypatch.setenv(compiling.THREADS_VARIABLE, value)
+    with pytest.raises(ValueError, match="DIFFPLAN_COMPILE_THREADS must be a positive integer"):
+        compiling.compile_threads()
+    monkeypatch.delenv(compiling.THREADS_VARIABLE)
+    assert compiling.compile_threads() == (__import__("os").cpu_count() or 1)

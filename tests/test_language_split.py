@@ -228,13 +228,13 @@ def test_no_held_out_phrasing_in_a_kuka_training_batch():
     from envs.kuka.config import TaskSpec
     from envs.kuka.training import SPECS, Recipe
 
+    import kuka_fixtures as kf
+
     assert {s.language for s in SPECS} == {"canonical", "paraphrased"}
-    recipe = Recipe()
-    batch_fn = jax.jit(recipe.batch_fn(), static_argnums=1)
+    assert {s.language for s in Recipe().specs} == {"canonical", "paraphrased"}
     found = []
     for step in range(2):
-        tokens = np.asarray(batch_fn(jax.random.PRNGKey(step), 4 * len(SPECS)).tokens)
-        for row in tokens:
+        for row in kf.training_tokens(False, step):
             sentences = kuka_grammar.sentence_templates(row)
             assert None not in sentences
             found += sentences
@@ -254,15 +254,11 @@ def test_a_broad_kuka_training_batch_draws_the_extras_and_no_held_out_phrasing()
     (paraphrased, development) never draw them, and they leave the vocabulary as it was."""
     import dataclasses
 
+    import kuka_fixtures as kf
     from envs.kuka.config import COLUMNS
     from envs.kuka.episode import generate
-    from envs.kuka.training import SPECS, Recipe
 
-    specs = tuple(dataclasses.replace(s, language="broad") if s.language == "paraphrased"
-                  else s for s in SPECS)
-    batch_fn = jax.jit(Recipe(specs=specs).batch_fn(), static_argnums=1)
-    tokens = np.asarray(batch_fn(jax.random.PRNGKey(0), 8 * len(specs)).tokens)
-    found = [t for row in tokens for t in kuka_grammar.sentence_templates(row)]
+    found = [t for row in kf.training_tokens(True, 0) for t in kuka_grammar.sentence_templates(row)]
     assert None not in found
     relations = {i for kind, i in found if kind == "relation"}
     assert relations & set(kuka_grammar.EXTRA) and relations & {1, 2, 3, 4, 5, 6, 7}

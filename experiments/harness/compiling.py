@@ -18,18 +18,36 @@ def available_memory_gb() -> float:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2 ** 30
 
 
+THREADS_VARIABLE = "DIFFPLAN_COMPILE_THREADS"
+"""An environment variable: at most this many programs compiled at once (default: the CPU's
+cores). The test suite sets 1: its two workers already keep both cores busy, and two MJX
+programs compiled at once by one worker took that worker to 13 GB."""
+
+
+def compile_threads() -> int:
+    """Programs compile_together may compile at once: $DIFFPLAN_COMPILE_THREADS, else the
+    cores; a value that is not a positive integer is refused in one line."""
+    value = os.environ.get(THREADS_VARIABLE)
+    if value is None:
+        return os.cpu_count() or 1
+    if not value.strip().isdigit() or int(value) < 1:
+        raise ValueError(f"${THREADS_VARIABLE} must be a positive integer, got {value!r}")
+    return int(value)
+
+
 def compile_together(fn, arg_sets, min_memory_gb: float = 16.0):
     """[fn's compiled program for each args of arg_sets]: traced and lowered one after another
     (Python holds the lock), then compiled by XLA in threads, so on a multi-core CPU the
     programs compile at once (the Kuka CLI's two planning modes on 2 cores: 117 s one after
     another, 75 s at once; its default command 7:32 -> 6:30 from an empty cache, peak memory
-    5.9 -> 11.8 GB). One at a time on a single core or with less than min_memory_gb of memory
-    available. Each result is called like fn with arguments of the same shapes."""
+    5.9 -> 11.8 GB). One at a time on a single core, with less than min_memory_gb of memory
+    available, or as $DIFFPLAN_COMPILE_THREADS says (compile_threads). Each result is called
+    like fn with arguments of the same shapes."""
     from concurrent.futures import ThreadPoolExecutor
 
     lowered = [fn.lower(*args) for args in arg_sets]
     enough = available_memory_gb() >= min_memory_gb
-    workers = min(len(lowered), os.cpu_count() or 1) if enough else 1
+    workers = min(len(lowered), compile_threads()) if enough else 1
     if workers < 2:
         return [low.compile() for low in lowered]
     with ThreadPoolExecutor(workers) as pool:
