@@ -107,3 +107,14 @@ def test_features_of_evaluation_episodes_are_their_rendered_texts(trained):
     texts = episode_texts(episodes, "p_mo2g")
     assert texts == [grammar.decode(t) for t in np.asarray(episodes.tokens)]
     np.testing.assert_array_equal(filled.features, instruction_encoder().encode(texts))
+
+
+def test_all_never_includes_the_sealed_natural_set():
+    """--language all (e.g. on the validation seed) must not show the sealed set: it is
+    measured once, by name."""
+    from experiments.gridworld.text import languages_of
+
+    for features in (False, True):
+        assert "natural" not in languages_of("all", features)
+        assert languages_of("all", features) == ("canonical", "paraphrased", "unseen")
+    assert languages_of("natural", True) == ("natural",)

@@ -421,3 +421,37 @@ def test_subgoal_skips_visited_cells_and_reaching_it_triggers_a_replan():
     # A model with 2 generated channels (no sub-goal) heads for its goal channel.
     two = jnp.stack([plan[..., 0], plan[..., 1]], -1)
     np.testing.assert_array_equal(goal_estimate(_open_state((5, 5)), two), [9, 9])
+
+
+def test_a_pool_without_progress_has_no_host_callback_and_the_same_results(p_mo2g_episodes):
+    """harness.rollout_fn(progress=False): the slot pool's program calls nothing on the host (so
+    JAX's persistent compilation cache can keep it) and gives the progress program's rollout
+    bit for bit; the progress program's callback reaches the relay's bar."""
+    from experiments.harness.core import rollout_fn
+    from experiments.harness.progress import PARTS, RELAY
+
+    task = GridTask(make_config("p_mo2g"))
+    config = PlannerConfig(mode="warm_start", num_steps=2, warm_start_step=1)
+    planner = oracle_planner("p_mo2g", config)
+    keys = jax.random.split(jax.random.PRNGKey(2), 12)
+
+    class Bar:
+        n = 0
+
+        def update(self, k):
+            self.n += k
+
+    outs, texts, bar = [], [], Bar()
+    for progress in (True, False):
+        run = rollout_fn(task, 4, progress=progress)
+        args = (planner, keys, p_mo2g_episodes)
+        texts.append(run.lower(*args, jnp.int32(0)).as_text())
+        token = RELAY.attach(bar)
+        try:
+            outs.append(jax.block_until_ready(run(*args, jnp.int32(token * PARTS))))
+        finally:
+            RELAY.detach(token)
+    assert "callback" in texts[0] and "callback" not in texts[1]
+    assert bar.n == 12  # only the progress program reported (12 episodes retired)
+    for a, b in zip(jax.tree.leaves(outs[0]), jax.tree.leaves(outs[1])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -95,12 +95,12 @@ def _measured(config, task_rollout, seed: int, idx, t0: float, progress: bool, d
 
 
 @functools.lru_cache(maxsize=None)
-def _planner_runner(task, slots: int):
-    """rollout_fn of the action-logging task on a pool of ``slots``, kept for the process: its
-    program reports progress through a host callback, which the persistent compilation cache
-    does not keep, so a second evaluation in the process (another seed, mode or sweep
-    setting) reuses the compiled program instead of compiling it again."""
-    return rollout_fn(metrics.ActionLog(task), slots)
+def _planner_runner(task, slots: int, progress: bool = True):
+    """rollout_fn of the action-logging task on a pool of ``slots``, kept for the process: with
+    a bar its program reports progress through a host callback, which the persistent
+    compilation cache does not keep, so a second evaluation in the process (another seed, mode
+    or sweep setting) reuses the compiled program instead of compiling it again."""
+    return rollout_fn(metrics.ActionLog(task), slots, progress=progress)
 
 
 def run_planner(spec, task, denoiser, mode: str, eps, seed: int, idx, slots: int,
@@ -114,7 +114,7 @@ def run_planner(spec, task, denoiser, mode: str, eps, seed: int, idx, slots: int
     n = int(np.shape(eps.tokens)[0])
     planner = Planner(denoiser, spec.planner_config(mode))
     per_call = min(n, 4 * slots)
-    run = _planner_runner(task, min(slots, per_call))
+    run = _planner_runner(task, min(slots, per_call), progress)
     desc = f"{spec.level} {METHOD_NAMES[mode]} (seed {seed})"
     bar = _bar(desc, n, progress, compiles=True)
     try:

@@ -106,7 +106,7 @@ def evaluate_mode(spec, task, denoiser, episodes, seed, mode, batch_size, progre
     per_device = min(-(-n // devices), 4 * batch_size) if stream else batch_size
     per_call = per_device * devices
     if stream:
-        run = rollout_fn(task, min(batch_size, per_device), mesh)
+        run = rollout_fn(task, min(batch_size, per_device), mesh, progress=progress)
         order = np.arange(n)
     else:
         run = rollout_fn(task, None, mesh)

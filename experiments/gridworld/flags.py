@@ -90,8 +90,9 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
                         "default), 'paraphrased' (the training paraphrases), 'unseen' (held-out "
                         "phrasings training never saw, made of its words), 'natural' (the "
                         "sealed natural-language set, sentences as people type them: only a "
-                        "checkpoint on pretrained text features reads them), or 'all' (a row "
-                        "per phrasing the checkpoint reads and mode; the same worlds in each)")
+                        "checkpoint on pretrained text features reads them; never part of 'all', "
+                        "it is measured once, by name), or 'all' (a row per phrasing other "
+                        "than the sealed set, and mode; the same worlds in each)")
     p.add_argument("--text", choices=("tokens", "pretrained"), default="tokens",
                    help="the denoiser's instruction input: 'tokens' (the grammar's word ids, "
                         "default) or 'pretrained' (the frozen pretrained text encoder's "

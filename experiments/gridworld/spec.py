@@ -32,8 +32,9 @@ METHOD_NAMES = {"one_shot": "one-shot", "k_shot": "two-shot", "on_the_fly": "on-
                 "warm_start": "warm-start on-the-fly"}
 
 LANGUAGE_CHOICES = {**harness.LANGUAGE_CHOICES, "natural": ("natural",)}
-"""--language: one phrasing, or "all" (every one the checkpoint reads: the natural-language set
-only with a denoiser on pretrained features, experiments.gridworld.text.languages_of)."""
+"""--language: one phrasing, or "all" (canonical, paraphrased, unseen: never the sealed
+natural-language set, which is measured only when named and only with a denoiser on pretrained
+features, experiments.gridworld.text.languages_of)."""
 
 CHECKPOINT_EVERY = 500
 """Steps between the checkpoints of a grid-world --train run."""

@@ -117,10 +117,13 @@ def policy_runner(task, act_fn, calls_per_move: int, plan_channels, observe):
         plan_channels=plan_channels, observe=observe))
 
 
-def rollout_fn(task, num_slots: int | None = None, mesh=None):
+def rollout_fn(task, num_slots: int | None = None, mesh=None, progress: bool = True):
     """jitted (planner, keys (N,), episodes, token) -> Rollout: diffplan.rollout, or with
     num_slots the slot pool (diffplan.rollout_stream, re-planning modes), which reports its
-    progress after every move to experiments.harness.progress.RELAY under ``token`` (int32 ()). The
+    progress after every move to experiments.harness.progress.RELAY under ``token`` (int32 ());
+    with ``progress=False`` it reports nothing (the same results): a program without a host
+    callback is one JAX's persistent compilation cache keeps, so a run with no bar
+    (``--no-progress``, the tests) compiles it once per machine, not once per process. The
     planner is an argument, so one compilation serves every checkpoint of the same
     architecture and every seed. With a mesh of several devices (of one process or of all,
     diffplan.distributed): the episodes split over them, each device its own rollout (or pool
@@ -128,15 +131,16 @@ def rollout_fn(task, num_slots: int | None = None, mesh=None):
     (diffplan.sharding.PerDevice: it places its arguments; read the output with
     diffplan.distributed.gather)."""
     from diffplan.rollouts import rollout, rollout_stream
-    from experiments.harness.progress import RELAY
+    from experiments.harness.progress import RELAY as relay
 
+    relay = relay if progress else None
     if mesh is not None and mesh.size > 1:
         from diffplan import sharding as shd
 
         def local(planner, keys, episodes, token):
             if num_slots is None:
                 return rollout(task, planner, keys, episodes)
-            return rollout_stream(task, planner, keys, episodes, num_slots, on_move=RELAY,
+            return rollout_stream(task, planner, keys, episodes, num_slots, on_move=relay,
                                   token=token + jax.lax.axis_index(shd.DATA_AXIS))
 
         return shd.PerDevice(local, mesh, replicated_argnums=(0, 3))
@@ -144,7 +148,7 @@ def rollout_fn(task, num_slots: int | None = None, mesh=None):
         return jax.jit(lambda planner, keys, episodes, token: rollout(task, planner, keys,
                                                                       episodes))
     return jax.jit(lambda planner, keys, episodes, token: rollout_stream(
-        task, planner, keys, episodes, num_slots, on_move=RELAY, token=token))
+        task, planner, keys, episodes, num_slots, on_move=relay, token=token))
 
 
 # ------------------------------------------------------------------ rows

@@ -150,7 +150,8 @@ class Runner:
         try:
             # The CLIs' program (harness.rollout_fn), so the two share compilations.
             compiled, compile_seconds = self._cached(cache_key, lambda: harness.rollout_fn(
-                task, slots if config["modes"] in ge.STREAM_MODES else None, self.mesh).lower(
+                task, slots if config["modes"] in ge.STREAM_MODES else None, self.mesh,
+                progress=self.progress).lower(
                     planner, keys, chunk, jnp.int32(0)).compile())
             t0 = time.time()
             out = gather(compiled(planner, keys, chunk, jnp.int32(token * PARTS)))
