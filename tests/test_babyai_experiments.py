@@ -184,3 +184,20 @@ def test_the_sweep_resumes_and_reports_the_fewest_reaching_99(tmp_path, monkeypa
     boxes = [t.get_window_extent(renderer) for t in fig.axes[0].texts]
     assert len(boxes) == 3 and not any(a.overlaps(b) for i, a in enumerate(boxes)
                                        for b in boxes[i + 1:])
+
+
+def test_published_entries_are_complete():
+    """Every published number names its paper, table, level, source and a demos count the code
+    can plot; a 99% threshold entry carries success 99 and its interval's high end."""
+    from experiments.babyai.spec import PUBLISHED, SPECS, published
+
+    keys = {"paper", "table", "level", "demos", "success", "what", "source"}
+    for p in PUBLISHED:
+        assert keys <= set(p) and p["level"] in SPECS, p
+        assert isinstance(p["demos"], int) and p["demos"] > 0, p
+        assert 0.0 <= p["success"] <= 100.0 and all(p[k] for k in ("paper", "table", "source"))
+        if p["what"] == "demos to reach 99%":
+            assert p["success"] == 99.0 and p.get("demos_high", p["demos"]) >= p["demos"], p
+        else:
+            assert p["what"] == f"success with {p['demos']} demos", p
+    assert sum(len(published(level)) for level in SPECS) == len(PUBLISHED)

@@ -152,14 +152,72 @@ def train(spec: LevelSpec, out_dir: str, *, demos: int | None = None, seed: int 
     return seconds
 
 
-PUBLISHED: tuple[dict, ...] = ()
-"""The BabyAI papers' imitation-learning numbers shown beside ours: dicts with "paper" (e.g.
-"BabyAI 1.1 (Hui et al. 2020)"), "table" (the table's number and caption as printed), "level"
-(a key of SPECS), "demos" (the demonstrations it was trained on, or needed to reach 99%),
-"success" (percent) and "what" (a few words: "success with N demos" or "demos to reach 99%").
-Only numbers read in the paper itself go here, each with its table: none has been transcribed
-yet (the papers' tables could not be read from this machine; docs/results.md, BabyAI, says
-which tables to copy)."""
+PUBLISHED: tuple[dict, ...] = (
+    # Read in github:Sungwoo-Lee/EPISODE@79edcbbe795ae679744c1ae60e5e788409e2fad0:
+    # docs/project/references/FiLM/reviews/chevalier_boisvert_2019_babyai.md, section 2.3:
+    # BabyAI 1.0's Table 3, column "IL from bot", row GoToLocal "148.5 - 193.2" (thousands of
+    # demonstrations, 99% credible interval of the fewest reaching 99% success).
+    {"paper": "BabyAI 1.0 (ICLR 2019)", "table": "Table 3 (second-hand)", "level": "goto_local",
+     "demos": 148_500, "demos_high": 193_200, "success": 99.0, "what": "demos to reach 99%",
+     "source": "github:Sungwoo-Lee/EPISODE@79edcbbe795ae679744c1ae60e5e788409e2fad0:"
+               "docs/project/references/FiLM/reviews/chevalier_boisvert_2019_babyai.md"},
+    # Same file and table, row GoTo "341.1 - 408.5" (its Table 4 row for GoTo from scratch,
+    # "341-409", agrees).
+    {"paper": "BabyAI 1.0 (ICLR 2019)", "table": "Table 3 (second-hand)", "level": "goto",
+     "demos": 341_100, "demos_high": 408_500, "success": 99.0, "what": "demos to reach 99%",
+     "source": "github:Sungwoo-Lee/EPISODE@79edcbbe795ae679744c1ae60e5e788409e2fad0:"
+               "docs/project/references/FiLM/reviews/chevalier_boisvert_2019_babyai.md"},
+    # Read in github:EthanAha-ctrl/ai_papers_obsidian@28c3ef5b9cdbf65260a7759dc62981025d0a9ac3:
+    # "RL/BabyAI 1.1.md", section 7: BabyAI 1.1's Table 3 (IL success rate), GoTo with 10k
+    # demonstrations ("big arch"), row bow_endpool_res (the 1.1 model) "96.1±0.4" (original
+    # 70.4±1.1, original_endpool_res 76.3±5.0).
+    {"paper": "BabyAI 1.1 (Hui et al. 2020)",
+     "table": "Table 3 (second-hand)", "level": "goto", "demos": 10_000,
+     "success": 96.1, "what": "success with 10000 demos",
+     "source": "github:EthanAha-ctrl/ai_papers_obsidian@"
+               "28c3ef5b9cdbf65260a7759dc62981025d0a9ac3:RL/BabyAI 1.1.md"},
+    # Same file, BabyAI 1.1's Table 4 (every level, IL with 1M demonstrations), column
+    # "BabyAI 1.1": GoToLocal "100", GoTo "100" (its "BabyAI 1.0" column, 99.8 and 99.4, is
+    # left out: see below).
+    {"paper": "BabyAI 1.1 (Hui et al. 2020)",
+     "table": "Table 4 (second-hand)", "level": "goto_local",
+     "demos": 1_000_000, "success": 100.0, "what": "success with 1000000 demos",
+     "source": "github:EthanAha-ctrl/ai_papers_obsidian@"
+               "28c3ef5b9cdbf65260a7759dc62981025d0a9ac3:RL/BabyAI 1.1.md"},
+    {"paper": "BabyAI 1.1 (Hui et al. 2020)",
+     "table": "Table 4 (second-hand)", "level": "goto",
+     "demos": 1_000_000, "success": 100.0, "what": "success with 1000000 demos",
+     "source": "github:EthanAha-ctrl/ai_papers_obsidian@"
+               "28c3ef5b9cdbf65260a7759dc62981025d0a9ac3:RL/BabyAI 1.1.md"},
+)
+"""The BabyAI papers' imitation-learning numbers shown beside ours: dicts with "paper",
+"table" (the table's number; its printed caption could not be read, see below), "level" (a key
+of SPECS), "demos" (the demonstrations it was trained on, or the fewest needed to reach 99%),
+"success" (percent; 99 for "demos to reach 99%"), "what" ("success with N demos" or "demos to
+reach 99%"), "source" (where it was read: repository@commit:path) and, for a 99% interval,
+"demos_high" (its high end; "demos" is then the low end).
+
+Neither paper's LaTeX nor its PDF could be read from this machine (mila-iqia/babyai holds no
+table on any branch; the stored copies of the arXiv pages could be read only to the
+introduction). The numbers are copied from two third parties' write-ups of the PDFs (both read
+as machine-written; the 1.1 one names the language model that wrote it), not checked against
+the papers, and neither quotes a table's caption; every entry's "table" says it came this way:
+
+* BabyAI 1.0 (Chevalier-Boisvert et al., "BabyAI: A Platform to Study the Sample Efficiency of
+  Grounded Language Learning", ICLR 2019; the write-up read arXiv 1810.08272v4), Table 3, "IL
+  from bot": the demonstrations (thousands, 99% credible interval) imitation learning needs to
+  reach 99% success: GoToLocal 148.5 - 193.2, GoTo 341.1 - 408.5.
+* BabyAI 1.1 (Hui et al. 2020, arXiv 2007.12770): Table 3, GoTo with 10k demonstrations: 96.1%
+  (the 1.1 model, bow_endpool_res); Table 4, 1M demonstrations: GoToLocal and GoTo 100%. That
+  write-up copies only some rows of each table.
+
+Left out: GoToObjMaze has no entry (1.0's Table 3 as transcribed has no GoToObjMaze row; the
+level appears in 1.0's Table 4 only as a pretraining level for GoTo, 444 - 602 thousand GoTo
+demonstrations after it; 1.1's Table 4 row for it is not in the write-up). 1.0's own success
+with 1M demonstrations (1.1's Table 4, column "BabyAI 1.0") is not transcribed: for GoToLocal
+it gives 99.8, while the 1.0 write-up says 1.0's Table 2 has 100% on every single-room level;
+which is right cannot be settled without the papers. Still to do: check these against the
+papers' tables and add the captions as printed."""
 
 
 def published(level: str) -> list[dict]:
