@@ -225,3 +225,21 @@ def test_sweep_pareto_figures(tmp_path, saved, calls):
                 (20.0, 21.0, 24.0, 60.0))]
     write_figures(str(tmp_path), rows)
     _check(saved, 2)
+
+
+@pytest.mark.parametrize("demos", [(100, 300, 1000), (100, 300, 1000, 3000, 10000)])
+def test_babyai_sample_efficiency_figure(tmp_path, saved, demos):
+    """The BabyAI success-against-demonstrations figure with the published numbers of
+    demonstrations three decades past ours (its tick labels used to run together) and every
+    published entry the level has: no text overlaps another or leaves the canvas."""
+    from experiments.babyai.figures import sweep_figure
+    from experiments.babyai.spec import published
+
+    papers = published("goto") or [{"paper": "a paper", "table": "Table 3", "level": "goto",
+                                     "demos": 341_100, "demos_high": 408_500, "success": 99.0,
+                                     "what": "demos to reach 99%", "source": "-"}]
+    rows = [{"demos": d, "SR": sr, "SR_ci95": [sr - 2.0, min(100.0, sr + 1.0)]}
+            for d, sr in zip(demos, (62.0, 88.5, 97.2, 99.1, 99.6))]
+    evaluation = {"demos": rows[-1]["demos"], "SR": 99.3}
+    sweep_figure(str(tmp_path / "curve.png"), "goto", rows, evaluation, papers, 99.0)
+    _check(saved, 1)

@@ -6,17 +6,30 @@ from __future__ import annotations
 import numpy as np
 
 
+def compact(v: float) -> str:
+    """A tick's number in few characters: 500, 2k, 150k, 1M, 0.5."""
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(v) >= scale:
+            return f"{v / scale:g}{suffix}"
+    return f"{v:g}"
+
+
 def log_ticks(ax, values) -> None:
-    """Major ticks of a log x axis at 1, 2, 5 x 10^k, plain numbers, no minor labels (which
-    pile up when the values span less than a decade); where fewer than two such ticks fall
-    inside the values' range, four evenly spaced (in log) rounded ticks instead."""
+    """Major ticks of a log x axis, labelled compactly (:func:`compact`), no minor labels
+    (which pile up when the values span less than a decade): at 1, 2, 5 x 10^k when the
+    values span at most two decades, at the powers of ten (every second one past six decades)
+    when they span more, so that labels never run together; where fewer than two such ticks
+    fall inside the values' range, four evenly spaced (in log) rounded ticks instead."""
     from matplotlib import ticker
 
     lo, hi = min(values), max(values)
     ax.set_xlim(lo / 1.25, hi * 1.25)
-    ax.xaxis.set_major_locator(ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    decades = np.log10(hi / lo) if lo > 0 else 0.0
+    subs = (1.0, 2.0, 5.0) if decades <= 2 else (1.0,)
+    ax.xaxis.set_major_locator(ticker.LogLocator(base=10, subs=subs,
+                                                 numticks=4 if decades > 6 else 12))
     ax.xaxis.set_minor_formatter(ticker.NullFormatter())
-    ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: compact(v)))
     inside = [t for t in ax.xaxis.get_major_locator().tick_values(lo / 1.25, hi * 1.25)
               if lo / 1.25 <= t <= hi * 1.25]
     if len(inside) < 2:
