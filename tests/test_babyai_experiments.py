@@ -201,3 +201,15 @@ def test_published_entries_are_complete():
         else:
             assert p["what"] == f"success with {p['demos']} demos", p
     assert sum(len(published(level)) for level in SPECS) == len(PUBLISHED)
+
+
+def test_published_numbers_print_with_their_interval_and_table():
+    from experiments.babyai import tables as bt
+    from experiments.babyai.spec import published
+
+    text = bt.format_published(published("goto_local"))
+    for p in published("goto_local"):
+        assert f"{p['paper']}, {p['table']}: {p['what']}" in text
+        if "demos_high" in p:
+            assert f"{p['demos']}-{p['demos_high']} demos" in text
+    assert "none found" in bt.format_published([])

@@ -43,14 +43,17 @@ def format_intervals(rows, seeds) -> str:
 
 
 def format_published(entries) -> str:
-    """The published imitation-learning numbers of the level (spec.PUBLISHED), or a line
-    saying none has been transcribed."""
+    """The published imitation-learning numbers of the level (spec.PUBLISHED; a 99% interval of
+    demonstrations as low-high), or a line saying none was found for it."""
     if not entries:
-        return ("published imitation learning (BabyAI papers): none transcribed yet "
-                "(docs/results.md, BabyAI)")
-    lines = ["published imitation learning (not measured here):"]
+        return ("published imitation learning (BabyAI papers): none found for this level "
+                "(experiments/babyai/spec.py, PUBLISHED, says what was looked for)")
+    lines = ["published imitation learning (not measured here; a table marked 'second-hand' "
+             "was read in a write-up of the paper, not in the paper):"]
     for p in entries:
-        lines.append(f"  {p['paper']}, {p['table']}: {p['what']}: {p['demos']} demos, "
+        demos = (f"{p['demos']}-{p['demos_high']}" if p.get("demos_high", p["demos"])
+                 != p["demos"] else f"{p['demos']}")
+        lines.append(f"  {p['paper']}, {p['table']}: {p['what']}: {demos} demos, "
                      f"{p['success']}% success")
     return "\n".join(lines)
 
