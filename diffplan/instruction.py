@@ -30,6 +30,7 @@ encoder's own float16 weights, which move them by up to 0.0031) and used as floa
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -44,7 +45,9 @@ from flax import struct
 from diffplan import bert
 
 __all__ = ["split_sentences", "SentenceTable", "assemble", "assemble_batch",
-           "InstructionEncoder", "encoder_record", "load_instruction_encoder", "CACHE_DIR"]
+           "InstructionEncoder", "encoder_record", "load_instruction_encoder", "CACHE_DIR",
+           "TEXTS", "check_text", "encode_cached", "instruction_lengths", "shared_encoder",
+           "instruction_of", "fitting_table", "text_metadata", "check_phrasings"]
 
 CACHE_DIR = "~/.cache/diffplan/text-features"
 """Where sentence tables are cached (``$DIFFPLAN_TEXT_CACHE`` overrides it)."""
@@ -301,3 +304,107 @@ def load_instruction_encoder(record: Mapping) -> InstructionEncoder:
         raise ValueError(f"not a text encoder record: {record!r}") from None
     encoder = load_text_encoder(directory, expected_sha256=hashes)
     return InstructionEncoder(encoder, int(length))
+
+
+# ------------------------------------------------------------------ what a world shares
+
+TEXTS = ("tokens", "pretrained")
+"""How a world's training recipe gives the denoiser its instructions (``Recipe.text``): token
+ids of the world's vocabulary, or the frozen pretrained text encoder's features of each
+sentence (the batches carry sentence ids, assembled inside the step)."""
+
+
+def check_text(text: str, **word_options) -> None:
+    """ValueError (one line) for an instruction input other than :data:`TEXTS`, or, with
+    "pretrained", for any option given a non-zero value in word_options (e.g.
+    ``role_loss_weight=0.5``): such options label or drop word tokens of the world's
+    vocabulary, and pretrained features have none."""
+    if text not in TEXTS:
+        raise ValueError(f"text must be one of {TEXTS}, got {text!r}")
+    used = [name for name, value in word_options.items() if value]
+    if text == "pretrained" and used:
+        raise ValueError(f"{used[0]} works on the world's word tokens, which pretrained text "
+                         f"features do not have (use {used[0]}=0 with text='pretrained')")
+
+
+def instruction_of(episode, text: str):
+    """What a task hands the planner of an episode's instruction (a world's
+    ``Task.tokens``): ``episode.tokens`` (text "tokens") or ``episode.features`` float32 (L, D)
+    (text "features", filled on the host before the rollout; ValueError, one line, where they
+    were not)."""
+    if text == "tokens":
+        return episode.tokens
+    if text != "features" or episode.features is None:
+        raise ValueError(f"text {text!r}: a task hands the planner 'tokens' or 'features', and "
+                         "features only of episodes filled with them before the rollout (the "
+                         "world's sentences.with_features)")
+    return episode.features
+
+
+def encode_cached(encoder: InstructionEncoder, texts: Sequence[str]) -> np.ndarray:
+    """float32 (N, L, D): :meth:`InstructionEncoder.encode` of the texts, each distinct sentence
+    encoded once and kept in the disk cache as a table of its own (a later run with the same
+    sentences reads them back). On the host: a world fills ``Episode.features`` with it before
+    the rollout, once per episode."""
+    texts = list(texts)
+    distinct = dict.fromkeys(s for text in texts for s in split_sentences(text))
+    encoder.table(list(distinct))  # encodes what is new, through the disk cache
+    return encoder.encode(texts)
+
+
+def instruction_lengths(lengths, sentence_ids) -> np.ndarray:
+    """int (...,) wordpieces of the instructions made of table rows sentence_ids int (..., S)
+    (-1 = absent, counted 0), from a table's per-sentence lengths int (N,)
+    (``SentenceTable.length``). Plain numpy: what a world's check that its instructions fit in
+    L counts."""
+    lengths = np.append(np.asarray(lengths), 0)  # row -1 (absent) counts 0
+    return lengths[np.asarray(sentence_ids)].sum(-1)
+
+
+def check_phrasings(phrasings: Mapping, allowed: Mapping) -> None:
+    """ValueError (one line) unless every phrasing of ``phrasings`` ({kind: indices}) is one of
+    ``allowed[kind]`` (a world's training phrasings): what a world checks before it builds a
+    training sentence table, so that no held-out, development or natural-language sentence can
+    enter one."""
+    for kind, indices in phrasings.items():
+        bad = sorted(set(map(int, indices)) - set(allowed[kind]))
+        if bad:
+            raise ValueError(f"{kind} phrasings {bad} are not training phrasings (training "
+                             f"draws {list(allowed[kind])}): no training table may hold them")
+
+
+def fitting_table(encoder: InstructionEncoder, sentences: Sequence[str], longest,
+                  world: str = "the world's") -> SentenceTable:
+    """``encoder.table(sentences)`` (a world's training sentences), refused (ValueError, one
+    line naming L) if ``longest(lengths)``, the most wordpieces an instruction made of its rows
+    can have (lengths int (N,): each row's, ``SentenceTable.length``), is over L."""
+    table = encoder.table(sentences)
+    count = int(longest(np.asarray(table.length)))
+    if count > encoder.max_tokens:
+        raise ValueError(f"an instruction is {count} wordpieces long, over {world} L = "
+                         f"{encoder.max_tokens}")
+    return table
+
+
+def text_metadata(text: str, vocabulary: Sequence[str], cell_tokens: Sequence[str],
+                  encoder) -> dict:
+    """What a checkpoint records of its instruction input (a world's ``Recipe.metadata``):
+    text "tokens", the vocabulary its token ids index; "pretrained", the text encoder
+    (:func:`encoder_record` of ``encoder()``, called only then) and the cell tokens its grid
+    embedding indexes."""
+    if text == "tokens":
+        return {"vocabulary": list(vocabulary)}
+    instruction_encoder = encoder()
+    return {"text": text, "cell_tokens": list(cell_tokens),
+            "text_encoder": encoder_record(instruction_encoder.encoder,
+                                           instruction_encoder.max_tokens)}
+
+
+@functools.lru_cache(maxsize=None)
+def shared_encoder(directory: str | None, max_tokens: int) -> InstructionEncoder:
+    """The :class:`InstructionEncoder` of the shipped pretrained text encoder (directory None)
+    or of a Hugging Face-format one at L = max_tokens, loaded once per process and shared (its
+    sentences kept in memory)."""
+    from diffplan.pretrained_text import load_text_encoder
+
+    return InstructionEncoder(load_text_encoder(directory), max_tokens)

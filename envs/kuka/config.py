@@ -27,8 +27,10 @@ class TaskSpec:
     """A task (hashable; pass as a static argument). kind: "stacking" or "rearrangement";
     multi: several instructed relations (3 stacking, 2 rearrangement) or one; language: one
     of grammar.LANGUAGES ("canonical", "paraphrased", "development": phrasings training never
-    sees but that were chosen on), or for training only "broad" (the training paraphrases and
-    the extra phrasings, grammar.EXTRA)."""
+    sees but that were chosen on, "heldout": the sealed held-out phrasings), "natural" (the
+    sealed natural-language set, envs.kuka.natural: only a denoiser on pretrained text
+    features reads it), or for training only "broad" (the training paraphrases and the extra
+    phrasings, grammar.EXTRA)."""
 
     kind: str
     multi: bool = False

@@ -49,7 +49,16 @@ class Episode:
       stacking: the whole tower; rearrangement: the instructed relations;
     tower: bool () the episode also needs all four blocks in one tower (stacking);
     max_steps: int32 () placements allowed (TaskSpec.max_steps);
-    tokens: int32 (grammar.MAX_TOKENS,) the instruction.
+    tokens: int32 (grammar.MAX_TOKENS,) the instruction (for a natural-language one, its
+      canonical phrasing's: the natural words are outside the vocabulary);
+    phrasing: int32 (1 + MAX_RELATIONS,) the phrasing of each sentence
+      (``grammar.draw_phrasings``): the tower sentence's (``grammar.tower_phrasings``), then
+      each relation's (``grammar.relation_phrasings``), the natural set's after the grammar's;
+      drawn for every sentence, present or not. None in an Episode built by hand.
+    features: None, or float32 (L, D) the instruction's pretrained text features
+      (``diffplan.instruction``), filled on the host before a rollout of a denoiser that reads
+      them (``envs.kuka.sentences.with_features``; ``KukaTask(text="features")`` hands them to
+      the planner). Never generated inside jit.
 
     Everything task-specific is data here, so that one compiled step serves every task.
     """
@@ -60,6 +69,8 @@ class Episode:
     tower: jax.Array
     max_steps: jax.Array
     tokens: jax.Array
+    phrasing: jax.Array | None = None
+    features: jax.Array | None = None
 
     @property
     def num_constraints(self) -> jax.Array:
@@ -135,16 +146,17 @@ def sample_relations(key, spec: TaskSpec):
 def generate(key, spec: TaskSpec) -> Episode:
     """An episode of the task from a key: the layout from the key's first split (every task
     shares the layouts of a seed), the relations from a split folded with the task's column
-    (each column draws its own) and the phrasing from the third."""
+    (each column draws its own) and the phrasings from the third (the same tokens in every
+    language but "natural", whose tokens are the canonical phrasing's)."""
     k_layout, k_rel, k_lang = jax.random.split(key, 3)
     column = list(COLUMNS).index(dataclasses.replace(spec, language="canonical").name)
     constraints, goal = sample_relations(jax.random.fold_in(k_rel, column), spec)
     tower = spec.kind == "stacking"
-    tokens = grammar.instruction_tokens(k_lang, constraints, tower and not spec.multi,
-                                        spec.language)
+    phrasing = grammar.draw_phrasings(k_lang, spec.language)
+    tokens = grammar.phrasing_tokens(phrasing, constraints, tower and not spec.multi)
     return Episode(block_xy=sample_layout(k_layout), constraints=constraints, goal=goal,
                    tower=jnp.asarray(tower), max_steps=jnp.asarray(spec.max_steps, jnp.int32),
-                   tokens=tokens)
+                   tokens=tokens, phrasing=phrasing)
 
 
 def episode_keys(seed: int, num: int, start: int = 0) -> jax.Array:

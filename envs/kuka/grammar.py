@@ -138,9 +138,16 @@ RELATIONS = np.stack([VOCABULARY.compile(t, SLOTS, SENTENCE_TOKENS) for t in REL
 TOWERS = np.stack([VOCABULARY.compile(t, SLOTS, SENTENCE_TOKENS) for t in TOWER_TEMPLATES])
 
 
-EPISODE_LANGUAGES = LANGUAGES + (language.BROAD,)
+EVALUATION_LANGUAGES = LANGUAGES + (language.NATURAL,)
+"""The Kuka world's evaluation languages: :data:`LANGUAGES` and the sealed natural-language set
+("natural", ``envs.kuka.natural``: read only by a denoiser on pretrained text features; never
+part of an "all")."""
+EPISODE_LANGUAGES = EVALUATION_LANGUAGES + (language.BROAD,)
 """What an episode's instruction may be phrased in: an evaluation language, or the training
 language ``broad``."""
+CELL_TOKENS: tuple[str, ...] = VOCAB[:len(BLOCK_NAMES) + 1]
+"""What a cell of condition channel 0 can hold: the padding id and the block colours (ids
+0-4; a denoiser on pretrained text features embeds these only)."""
 
 
 def check_phrasing(phrasing: str) -> str:
@@ -177,6 +184,66 @@ def decode(ids) -> str:
     return VOCABULARY.decode(ids)
 
 
+def tower_phrasings() -> tuple[str, ...]:
+    """What ``Episode.phrasing[0]`` indexes: the tower sentence's phrasings, the grammar's
+    (:data:`TOWER_TEMPLATES`) then the sealed natural set's (``natural.TOWERS``)."""
+    from envs.kuka import natural
+
+    return TOWER_TEMPLATES + natural.TOWERS
+
+
+def relation_phrasings() -> tuple[str, ...]:
+    """What ``Episode.phrasing[1:]`` indexes: the relation phrasings, the grammar's
+    (:data:`RELATION_TEMPLATES`) then the sealed natural set's
+    (``natural.relation_sentences()``; some are two sentences, "See the {bottom} block? Put
+    the {top} block on top of it.")."""
+    from envs.kuka import natural
+
+    return RELATION_TEMPLATES + natural.relation_sentences()
+
+
+def phrasing_pools(phrasing: str) -> tuple[np.ndarray, np.ndarray]:
+    """(tower pool, relation pool) int32: the phrasings (indices of :func:`tower_phrasings`,
+    :func:`relation_phrasings`) a sentence of the language draws from uniformly; "natural":
+    the natural set's, after the grammar's."""
+    check_phrasing(phrasing)
+    if phrasing == language.NATURAL:
+        return (np.arange(len(TOWER_TEMPLATES), len(tower_phrasings()), dtype=np.int32),
+                np.arange(len(RELATION_TEMPLATES), len(relation_phrasings()), dtype=np.int32))
+    return TOWER_SPLIT.pool(phrasing), RELATION_SPLIT.pool(phrasing)
+
+
+def draw_phrasings(key, phrasing: str = "canonical"):
+    """int32 (1 + MAX_RELATIONS,) an instruction's phrasings (``Episode.phrasing``): the tower
+    sentence's (:func:`tower_phrasings`), then each relation sentence's
+    (:func:`relation_phrasings`), drawn uniformly from the language's pools
+    (:func:`phrasing_pools`); one drawn for every sentence, present or not. jit/vmap-able."""
+    towers, relations = phrasing_pools(phrasing)
+    k_tower, k_rel = jax.random.split(key)
+    tower = language.draw_template(k_tower, towers)
+    which = language.draw_template(k_rel, relations, (MAX_RELATIONS,))
+    return jnp.concatenate([tower[None], which]).astype(jnp.int32)
+
+
+def phrasing_tokens(phrasings, constraints, tower_sentence):
+    """int32 (MAX_TOKENS,) the token ids of an instruction in the given phrasings (int
+    (1 + MAX_RELATIONS,), :func:`draw_phrasings`); a natural-language phrasing's sentence is
+    written in its canonical phrasing (its words are outside the vocabulary: only a denoiser
+    on pretrained features reads the natural text). constraints int32 (MAX_RELATIONS, 2)
+    (top, bottom), -1 rows absent; tower_sentence bool (). jit/vmap-able."""
+    phrasings = jnp.asarray(phrasings)
+    constraints = jnp.asarray(constraints)
+    tower_k, relation_k = phrasings[0], phrasings[1:]
+    tower = jnp.asarray(TOWERS)[jnp.where(tower_k < len(TOWER_TEMPLATES), tower_k, 0)]
+    which = jnp.where(relation_k < len(RELATION_TEMPLATES), relation_k, 0)
+    slots = block_token(jnp.maximum(constraints, 0))
+    relations = jax.vmap(language.fill_slots)(jnp.asarray(RELATIONS)[which], slots)
+    segments = jnp.concatenate([tower[None], relations])
+    lengths = (segments != language.PAD_ID).sum(-1)
+    present = jnp.concatenate([jnp.asarray(tower_sentence)[None], constraints[:, 0] >= 0])
+    return language.concat_segments(segments, jnp.where(present, lengths, 0), MAX_TOKENS)
+
+
 def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canonical"):
     """int32 (MAX_TOKENS,) an instruction's token ids; jit/vmap-able.
 
@@ -184,19 +251,11 @@ def instruction_tokens(key, constraints, tower_sentence, phrasing: str = "canoni
     tower_sentence: bool () starts with the tower sentence; phrasing (static, LANGUAGES): each
     sentence in its canonical phrasing, or in one drawn uniformly from the training
     paraphrases, the development phrasings or the sealed held-out phrasings; or (training
-    only) "broad": the training paraphrases and the extras (:data:`EXTRA`).
+    only) "broad": the training paraphrases and the extras (:data:`EXTRA`); "natural": the
+    canonical phrasing's tokens (:func:`phrasing_tokens`). The phrasings drawn are
+    :func:`draw_phrasings`' of the same key.
     """
-    check_phrasing(phrasing)
-    k_tower, k_rel = jax.random.split(key)
-    constraints = jnp.asarray(constraints)
-    tower = jnp.asarray(TOWERS)[language.draw_template(k_tower, TOWER_SPLIT.pool(phrasing))]
-    which = language.draw_template(k_rel, RELATION_SPLIT.pool(phrasing), (MAX_RELATIONS,))
-    slots = block_token(jnp.maximum(constraints, 0))
-    relations = jax.vmap(language.fill_slots)(jnp.asarray(RELATIONS)[which], slots)
-    segments = jnp.concatenate([tower[None], relations])
-    lengths = (segments != language.PAD_ID).sum(-1)
-    present = jnp.concatenate([jnp.asarray(tower_sentence)[None], constraints[:, 0] >= 0])
-    return language.concat_segments(segments, jnp.where(present, lengths, 0), MAX_TOKENS)
+    return phrasing_tokens(draw_phrasings(key, phrasing), constraints, tower_sentence)
 
 
 ROLES = ("top", "bottom")
@@ -225,14 +284,17 @@ def token_roles(tokens, constraints, tower_sentence):
 
 
 def render(constraints, tower_sentence: bool, relation_templates=None, tower_template: int = 0):
-    """Plain-Python rendering of an instruction (the reference for tests): constraints
-    ((top, bottom), ...) block indices (-1 rows skipped), each relation in
-    relation_templates[k] (default canonical)."""
-    sentences = [TOWER_TEMPLATES[tower_template]] if tower_sentence else []
+    """Plain-Python rendering of an instruction (the reference for tests, and the text a
+    denoiser on pretrained features reads): constraints ((top, bottom), ...) block indices (-1
+    rows skipped), each present relation in relation_templates[k] (default canonical; indices
+    of :func:`relation_phrasings`, the natural set's included), the tower sentence in
+    tower_template (of :func:`tower_phrasings`)."""
+    sentences = [tower_phrasings()[tower_template]] if tower_sentence else []
     rows = [(int(t), int(b)) for t, b in np.asarray(constraints).reshape(-1, 2) if t >= 0]
     templates = relation_templates or [0] * len(rows)
+    phrasings = relation_phrasings()
     for (top, bottom), k in zip(rows, templates):
-        sentences.append(language.render(RELATION_TEMPLATES[k], {
+        sentences.append(language.render(phrasings[k], {
             "top": BLOCK_NAMES[top], "bottom": BLOCK_NAMES[bottom]}))
     return " ".join(sentences)
 

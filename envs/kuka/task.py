@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from diffplan.instruction import instruction_of
 from envs.kuka import env, grammar, grid, physics, primitive, scene
 from envs.kuka.config import MAX_STEPS
 from envs.kuka.episode import Episode
@@ -55,6 +56,8 @@ PATH, GOAL, PICK = 0, 1, 2
 """Indices of the generated channels within a plan (H, W, G)."""
 EMPTY_TOKEN = 0
 """Channel 0 of a cell no block covers (the padding id)."""
+TEXT_INPUTS = ("tokens", "features")
+"""What a KukaTask hands the planner of an episode's instruction (``KukaTask.text``)."""
 PATH_ITERATIONS = 48
 """Relaxation sweeps of the distance along the path (a carry arc spans at most ~30 cells)."""
 
@@ -190,6 +193,9 @@ class KukaTask:
     instruction) is data in the Episode. max_steps is the largest episode length
     (MAX_STEPS); each episode ends after its own ``episode.max_steps`` placements.
     follow_path: carry blocks along the in-painted path (False: along the expert's arc).
+    text: what ``tokens(episode)`` hands the planner: "tokens" (the instruction's token ids)
+    or "features" (its pretrained text features, ``Episode.features``, filled on the host by
+    ``envs.kuka.sentences.with_features``: a denoiser with ``DenoiserConfig.context_dim`` > 0).
     """
 
     follow_path: bool = True
@@ -198,8 +204,11 @@ class KukaTask:
     num_cond_channels: int = NUM_COND_CHANNELS
     num_gen_channels: int = NUM_GEN_CHANNELS
     max_steps: int = MAX_STEPS
+    text: str = "tokens"
 
     def __post_init__(self):
+        if self.text not in TEXT_INPUTS:
+            raise ValueError(f"text must be one of {TEXT_INPUTS}, got {self.text!r}")
         expected = (grid.GRID_SIZE, grid.GRID_SIZE, NUM_COND_CHANNELS, NUM_GEN_CHANNELS)
         got = (self.height, self.width, self.num_cond_channels, self.num_gen_channels)
         if got != expected:
@@ -209,13 +218,16 @@ class KukaTask:
                              f"got {self.max_steps}")
 
     def reset(self, episode: Episode) -> env.State:
-        return env.reset(episode)
+        """The state at t = 0 (``env.reset``); the episode's features, which the planner read
+        once in ``tokens``, are not carried through the physics."""
+        return env.reset(episode.replace(features=None))
 
     def condition(self, state: env.State):
         return condition_from_view(*env.view(state))
 
     def tokens(self, episode: Episode):
-        return episode.tokens
+        """int32 (L,) token ids, or with text "features" float32 (L, D) features."""
+        return instruction_of(episode, self.text)
 
     def psi(self, state: env.State, plan):
         return psi(state, plan, self.follow_path)

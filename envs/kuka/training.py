@@ -25,11 +25,14 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from diffplan.instruction import check_text, text_metadata
 from diffplan.language import check_training_language
 from envs.kuka import expert, grammar, grid, scene
 from envs.kuka.config import COLUMNS, TaskSpec
 from envs.kuka.episode import Episode, generate
+from envs.kuka.sentences import instruction_encoder, training_index, training_table
 from envs.kuka.task import NUM_GEN_CHANNELS, condition_from_view
 
 TRAIN_STREAM = 0x6B4B
@@ -134,6 +137,22 @@ def training_example(key, spec: TaskSpec, perturb_prob: float):
     return plan_example(pos, quat, episode), episode.tokens, roles, named
 
 
+def instruction_sentence_ids(episode: Episode):
+    """int32 (S,) the rows of the episode's instruction's sentences in the training sentence
+    table (``envs.kuka.sentences.training_index``; -1 = absent)."""
+    return training_index().ids(episode.phrasing, episode.constraints, single_tower(episode))
+
+
+def sentence_example(key, spec: TaskSpec, perturb_prob: float):
+    """One example of a task spec for a denoiser on pretrained text features: (x0 float32
+    (24, 24, C + G), sentence ids int32 (S,)): the planning tensor of a :func:`training_state`
+    (as :func:`training_example`) and the training-table rows of its instruction's sentences
+    (:func:`instruction_sentence_ids`), which ``diffplan.train.train(..., sentences=table)``
+    assembles into features inside the step."""
+    pos, quat, episode = training_state(key, spec, perturb_prob)
+    return plan_example(pos, quat, episode), instruction_sentence_ids(episode)
+
+
 # ------------------------------------------------------------------------------ batches
 
 def training_episode_keys(key, batch_size: int):
@@ -149,9 +168,17 @@ def spec_examples(example_fn, key, batch_size: int, specs, perturb_prob: float):
         raise ValueError(f"batch size {batch_size} is not a multiple of the {len(specs)} "
                          "task specs")
     keys = training_episode_keys(key, batch_size).reshape(len(specs), -1, 2)
-    parts = [jax.vmap(example_fn, in_axes=(0, None, None))(k, spec, perturb_prob)
-             for k, spec in zip(keys, specs)]
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    share = keys.shape[1]
+    # A spec listed several times is traced once, over all its shares' keys (the default Kuka
+    # recipe lists 8 specs in 16 shares: half the program to compile, the same examples).
+    parts = {}
+    for spec in dict.fromkeys(specs):
+        shares = [i for i, s in enumerate(specs) if s == spec]
+        out = jax.vmap(example_fn, in_axes=(0, None, None))(
+            keys[np.array(shares)].reshape(-1, 2), spec, perturb_prob)
+        for j, i in enumerate(shares):
+            parts[i] = jax.tree.map(lambda x, j=j: x[j * share:(j + 1) * share], out)
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *(parts[i] for i in range(len(specs))))
 
 
 def as_task_spec(spec) -> TaskSpec:
@@ -179,15 +206,22 @@ class Recipe:
     the weight of the goal and pick channels in the loss relative to the path channel's.
     role_loss_weight: 0, or the weight of an auxiliary loss (``diffplan.losses.token_loss``)
     that asks the denoiser's token head which block each block word of a relation names, the
-    upper or the lower (``grammar.token_roles``); it needs a denoiser with ``token_classes=2``.
+    upper or the lower (``grammar.token_roles``); it needs a denoiser with ``token_classes=2``
+    and token ids (refused with text "pretrained": its labels are per token id, and the
+    pretrained features have wordpieces, not the grammar's tokens).
+    text: "tokens" (the grammar's token ids) or "pretrained" (the frozen pretrained text
+    encoder's features of each sentence, ``diffplan.instruction``: the batches carry sentence
+    ids into :meth:`sentences`, the training sentence table of the training phrasings only).
     """
 
     specs: tuple = DENOISER_SPECS
     perturb_prob: float = 0.5
     goal_loss_weight: float = 3.0
     role_loss_weight: float = 0.0
+    text: str = "tokens"
 
     def __post_init__(self):
+        check_text(self.text, role_loss_weight=self.role_loss_weight)
         if not 0 <= self.perturb_prob <= 1:
             raise ValueError(f"perturb_prob must be in [0, 1], got {self.perturb_prob}")
         if not self.goal_loss_weight > 0:
@@ -201,22 +235,29 @@ class Recipe:
             check_training_language(spec.language, grammar.LANGUAGES)
 
     def batch_fn(self):
-        """batch_fn(key, batch_size) -> diffplan.train.Batch."""
+        """batch_fn(key, batch_size) -> diffplan.train.Batch (text "pretrained": its tokens
+        are sentence ids int32 (B, S) of :meth:`sentences`)."""
         from diffplan.losses import with_token_labels
         from diffplan.train import Batch
 
         specs, prob, weight = self.specs, self.perturb_prob, self.goal_loss_weight
         role_weight = self.role_loss_weight
 
+        def mask(x0):
+            return jnp.broadcast_to(jnp.array([1.0, weight, weight], jnp.float32),
+                                    x0.shape[:-1] + (NUM_GEN_CHANNELS,))
+
         def batch_fn(key, batch_size):
             x0, tokens, roles, named = spec_examples(training_example, key, batch_size, specs,
                                                      prob)
-            mask = jnp.broadcast_to(jnp.array([1.0, weight, weight], jnp.float32),
-                                    x0.shape[:-1] + (NUM_GEN_CHANNELS,))
-            return with_token_labels(Batch(x0=x0, tokens=tokens, loss_mask=mask), roles, named,
-                                     role_weight)
+            return with_token_labels(Batch(x0=x0, tokens=tokens, loss_mask=mask(x0)), roles,
+                                     named, role_weight)
 
-        return batch_fn
+        def sentence_batch_fn(key, batch_size):
+            x0, ids = spec_examples(sentence_example, key, batch_size, specs, prob)
+            return Batch(x0=x0, tokens=ids, loss_mask=mask(x0))
+
+        return sentence_batch_fn if self.text == "pretrained" else batch_fn
 
     @property
     def batch_multiple(self) -> int:
@@ -228,11 +269,21 @@ class Recipe:
         return jax.eval_shape(lambda k: self.batch_fn()(k, self.batch_multiple),
                               jax.random.PRNGKey(0))
 
+    def sentences(self):
+        """The training sentence table the batches' sentence ids index
+        (``envs.kuka.sentences.training_table``; computed once, then read from the disk
+        cache), or None with text "tokens"."""
+        return training_table() if self.text == "pretrained" else None
+
     def metadata(self) -> dict:
-        """What a checkpoint records of the recipe (compared when resuming)."""
+        """What a checkpoint records of the recipe (compared when resuming): with text
+        "pretrained" the text encoder and the cell tokens instead of the vocabulary
+        (``diffplan.instruction.text_metadata``)."""
         meta = {"specs": [[s.kind, s.multi, s.language] for s in self.specs],
                 "perturb_prob": self.perturb_prob, "goal_loss_weight": self.goal_loss_weight,
-                "num_gen_channels": NUM_GEN_CHANNELS, "vocabulary": list(grammar.VOCAB)}
+                "num_gen_channels": NUM_GEN_CHANNELS,
+                **text_metadata(self.text, grammar.VOCAB, grammar.CELL_TOKENS,
+                                instruction_encoder)}
         if self.role_loss_weight:  # absent at 0, as in checkpoints from before it
             meta["role_loss_weight"] = self.role_loss_weight
         return meta

@@ -18,28 +18,33 @@ from typing import Sequence
 import numpy as np
 
 from experiments.harness import cli, compiling, core as harness, processes, tables
-from experiments.kuka import eval as ke, spec as ks, tables as kt
+from experiments.kuka import eval as ke, spec as ks, tables as kt, text
+from experiments.kuka.figures import figures_and_videos, write_videos  # noqa: F401
 from experiments.kuka.flags import build_parser, check_args
 
 
-def _denoiser(kind: str, args, progress: bool):
-    """(checkpoint, train seconds or None, LoadedDenoiser): --train's result or a checkpoint."""
+def _denoiser(kind: str, args, languages, progress: bool):
+    """(checkpoint, train seconds or None, LoadedDenoiser, its InstructionEncoder or None for
+    token ids): --train's result or a checkpoint, checked to read the languages (and
+    --reader's token ids) in one line otherwise."""
     train_seconds = None
     if args.train:
         from diffplan.train import ConfigMismatchError
 
-        checkpoint = args.train_dir or ks.DEFAULT_TRAIN_DIR
+        checkpoint = args.train_dir or ks.default_train_dir(args.text)
         try:
             train_seconds = ks.train_denoiser(
                 checkpoint, seed=args.train_seed or 0, steps=args.train_steps or ks.TRAIN_STEPS,
                 model_size=args.model_size or "default",
                 checkpoint_every=args.checkpoint_every or ks.CHECKPOINT_EVERY,
-                progress=progress)
+                progress=progress, text=args.text)
         except ConfigMismatchError as e:
             harness.fail(str(e))
     else:
-        checkpoint = args.checkpoint or ks.DEFAULT_CHECKPOINT
-    return checkpoint, train_seconds, ks.load_checked(checkpoint, args.num_steps, kind)
+        checkpoint = args.checkpoint or ks.default_checkpoint(args.text)
+    denoiser = ks.load_checked(checkpoint, args.num_steps, kind, args.text)
+    return checkpoint, train_seconds, denoiser, text.checkpoint_input(
+        checkpoint, denoiser, languages, args.reader)
 
 
 def _columns(args, seeds, specs, episodes, run, label, key, mode):
@@ -131,47 +136,6 @@ def _print_summary(kind, args, seeds, checkpoint, all_rows) -> None:
         for name, (s, m) in ks.PAPER[kind].items()))
 
 
-def write_videos(out_dir: str, videos: dict) -> list[str]:
-    from envs.kuka import render
-
-    if not videos:
-        return []
-    result = render.write_videos(out_dir, videos)
-    if result is None:
-        print(f"--video: no GL backend for offscreen rendering ({'/'.join(render.GL_BACKENDS)} "
-              "failed); no videos written")
-        return []
-    print(f"wrote {len(result[0])} videos to {out_dir} (MUJOCO_GL={result[1]})")
-    return result[0]
-
-
-def _figures_and_videos(args, specs, episodes, finals, task, planner, seed) -> None:
-    """--figures and --video: the first episodes of each column, re-run move by move."""
-    import jax
-
-    from experiments.kuka import figures as kuka_figures
-
-    count = max(args.num_figures if args.figures else 0, args.num_videos if args.video else 0)
-    if not count or not processes.writes():
-        return
-    traces = {}
-    for spec in specs:
-        eps = jax.tree.map(lambda x: x[:count], episodes[spec, seed])
-        traces[spec] = (kuka_figures.trace(task, planner, eps,
-                                           harness.planner_keys(seed, np.arange(count)))
-                        if planner is not None
-                        else kuka_figures.expert_trace(eps, finals[None, spec][1]))
-    if args.figures and args.num_figures:
-        written = [p for spec in specs for p in kuka_figures.write_figures(
-            args.figures, spec, traces[spec], args.num_figures)]
-        print(f"wrote {len(written)} figures to {args.figures}")
-    if args.video and args.num_videos:
-        videos = {}
-        for spec in specs:
-            videos.update(kuka_figures.video_frames(spec, traces[spec], args.num_videos))
-        write_videos(args.video, videos)
-
-
 def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     parser = build_parser(kind)
     args = parser.parse_args(argv)
@@ -185,20 +149,22 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
 
     progress = not args.no_progress
     planner_policy = args.policy == "planner"
-    train_seconds, checkpoint, task, denoiser = None, None, None, None
+    train_seconds, checkpoint, task, denoiser, encoder = None, None, None, None, None
+    languages = text.languages_of(args.language)
     if planner_policy:
         from envs.kuka.task import KukaTask
 
-        checkpoint, train_seconds, denoiser = _denoiser(kind, args, progress)
-        task = KukaTask(follow_path=args.carry == "path")
+        checkpoint, train_seconds, denoiser, encoder = _denoiser(kind, args, languages, progress)
+        task = KukaTask(follow_path=args.carry == "path", text=text.task_input(encoder))
     else:
         modes = (None,)
 
-    languages = ks.LANGUAGE_CHOICES[args.language]
     specs = [TaskSpec(kind, multi, language) for language in languages
              for multi in (False, True)]
-    episodes = {(spec, seed): ke.generate_episodes(spec, args.episodes, seed, args.batch_size)
-                for spec in specs for seed in seeds}
+    # A denoiser on pretrained text: features on the host, once per episode, before any rollout
+    episodes = {(spec, seed): text.with_features(
+        ke.generate_episodes(spec, args.episodes, seed, args.batch_size), encoder)
+        for spec in specs for seed in seeds}
     actors = len(modes) + len(args.baselines)
     bar = progress_bar(total=args.episodes * len(seeds) * len(specs) * actors,
                        desc=f"kuka {kind} ({args.policy})", unit="ep", disable=not progress,
@@ -246,5 +212,5 @@ def main(kind: str, argv: Sequence[str] | None = None) -> dict:
     if planner_policy:
         from diffplan.planner import Planner, PlannerConfig
         planner = Planner(denoiser, PlannerConfig(mode=main_mode, num_steps=args.num_steps))
-    _figures_and_videos(args, specs, episodes, finals, task, planner, seeds[0])
+    figures_and_videos(args, specs, episodes, finals, task, planner, seeds[0])
     return result

@@ -231,7 +231,8 @@ def pooled_row(method: str, rows, seconds: float) -> dict:
 
 def write_states(path: str, parts) -> None:
     """Contract 4: the final physics state of every episode (parts: (episodes, final) pairs)."""
-    from envs.kuka import grammar, scene
+    from envs.kuka import scene
+    from envs.kuka.sentences import episode_texts
 
     arrays = {
         "block_pos": np.concatenate([f["block_pos"] for _, f in parts]).astype(np.float32),
@@ -240,8 +241,8 @@ def write_states(path: str, parts) -> None:
         "block_half_size": np.asarray(scene.BLOCK_HALF_SIZE, np.float32),
         "constraints": np.concatenate([np.asarray(e.constraints) for e, _ in parts]).astype(
             np.int32),
-        "instruction": np.array([grammar.decode(t) for e, _ in parts
-                                 for t in np.asarray(e.tokens)]),
+        # Rendered from the phrasings: the tokens of a natural-language episode are canonical.
+        "instruction": np.array([t for e, _ in parts for t in episode_texts(e)]),
     }
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     np.savez_compressed(path, **arrays)

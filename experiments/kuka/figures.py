@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs.kuka import env, grammar, scene
+from envs.kuka import env, scene
+from envs.kuka.sentences import episode_texts
 
 
 @functools.lru_cache(maxsize=None)
@@ -55,11 +56,13 @@ def trace(task, planner, episodes, keys) -> list[dict]:
 
     Returns one dict per episode: panels (a draw_view panel before every placement, with the
     plan and psi's cells, and one of the end), frames float32 (F, nq) of every placement made,
-    placements int, instruction str."""
+    placements int, instruction str (rendered from its phrasings: a natural-language
+    episode's own text)."""
     move_fn = _move_fn(task)
-    states = env.reset_batch(episodes)
-    planner_states = jax.vmap(planner.init)(keys, jnp.asarray(episodes.tokens))
+    states = env.reset_batch(episodes.replace(features=None))
+    planner_states = jax.vmap(planner.init)(keys, jax.vmap(task.tokens)(episodes))
     n = int(np.shape(episodes.tokens)[0])
+    texts = episode_texts(episodes)
     panels = [[] for _ in range(n)]
     frames = [[] for _ in range(n)]
     for t in range(task.max_steps):
@@ -82,7 +85,7 @@ def trace(task, planner, episodes, keys) -> list[dict]:
         panels[i].append(_panel(top[i], height[i], f"end ({int(placements[i])} placements)"))
         out.append(dict(panels=panels[i], frames=np.concatenate(frames[i] or [
             np.asarray(states.frames[i])]), placements=int(placements[i]),
-            instruction=grammar.decode(np.asarray(episodes.tokens[i]))))
+            instruction=texts[i]))
     return out
 
 
@@ -92,6 +95,7 @@ def expert_trace(episodes, final) -> list[dict]:
     from envs.kuka import expert, grid
 
     out = []
+    texts = episode_texts(episodes)
     for i in range(int(np.shape(episodes.tokens)[0])):
         episode = jax.tree.map(lambda x: x[i], episodes)
         pos0 = np.concatenate([episode.block_xy, np.full((4, 1), scene.BLOCK_HALF_SIZE[2])], 1)
@@ -108,7 +112,7 @@ def expert_trace(episodes, final) -> list[dict]:
                         frames=final["frames"][i, :used].reshape(
                             -1, final["frames"].shape[-1]),
                         placements=int(final["placements"][i]),
-                        instruction=grammar.decode(np.asarray(episode.tokens))))
+                        instruction=texts[i]))
     return out
 
 
@@ -125,3 +129,44 @@ def video_frames(spec, traced: list[dict], count: int) -> dict:
     """{name: qpos frames (F, nq)} of the first `count` traced episodes."""
     return {f"{spec.name}_{spec.language}_{i:03d}": t["frames"]
             for i, t in enumerate(traced[:count])}
+
+
+def write_videos(out_dir: str, videos: dict) -> list[str]:
+    """GIFs of the videos ({name: qpos frames}) in out_dir (the paths), or a line saying that
+    no GL backend renders offscreen here (no paths)."""
+    from envs.kuka import render
+
+    if not videos:
+        return []
+    result = render.write_videos(out_dir, videos)
+    if result is None:
+        print(f"--video: no GL backend for offscreen rendering ({'/'.join(render.GL_BACKENDS)} "
+              "failed); no videos written")
+        return []
+    print(f"wrote {len(result[0])} videos to {out_dir} (MUJOCO_GL={result[1]})")
+    return result[0]
+
+
+def figures_and_videos(args, specs, episodes, finals, task, planner, seed) -> None:
+    """The CLIs' --figures and --video: the first episodes of each column, re-run move by move
+    (planner None: the expert's, from its results)."""
+    from experiments.harness import processes
+    from experiments.harness.core import planner_keys
+
+    count = max(args.num_figures if args.figures else 0, args.num_videos if args.video else 0)
+    if not count or not processes.writes():
+        return
+    traces = {}
+    for spec in specs:
+        eps = jax.tree.map(lambda x: x[:count], episodes[spec, seed])
+        traces[spec] = (trace(task, planner, eps, planner_keys(seed, np.arange(count)))
+                        if planner is not None else expert_trace(eps, finals[None, spec][1]))
+    if args.figures and args.num_figures:
+        written = [p for spec in specs for p in write_figures(
+            args.figures, spec, traces[spec], args.num_figures)]
+        print(f"wrote {len(written)} figures to {args.figures}")
+    if args.video and args.num_videos:
+        videos = {}
+        for spec in specs:
+            videos.update(video_frames(spec, traces[spec], args.num_videos))
+        write_videos(args.video, videos)

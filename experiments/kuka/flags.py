@@ -9,8 +9,8 @@ from envs.kuka.env import SETTLE_SECONDS
 from experiments.harness import cli, core as harness
 from experiments.kuka import baselines as kuka_baselines
 from experiments.kuka.spec import (CARRIES, CHECKPOINT_EVERY, DEFAULT_BATCH, DEFAULT_EPISODES,
-                                   LANGUAGE_CHOICES, MODES, NUM_STEPS, POLICIES, TRAIN_STEPS,
-                                   TRAINING_NAME)
+                                   LANGUAGE_CHOICES, MODES, NUM_STEPS, POLICIES, TEXTS,
+                                   TRAIN_STEPS, TRAINING_NAME)
 from experiments.kuka.baselines import KUKA_BASELINES
 from experiments.harness.processes import add_process_flags
 from experiments.harness.recipes import MODEL_SIZES
@@ -38,8 +38,18 @@ def build_parser(kind: str) -> argparse.ArgumentParser:
                         "with inverted prepositions (Table 5, the training paraphrases), "
                         "'development' (phrasings training never saw, made of its words, but "
                         "chosen on: development numbers), 'heldout' (sealed held-out phrasings "
-                        "in new frames: never trained on, never chosen on), 'both' (canonical "
-                        "and paraphrased: every row for each) or 'all' (every one)")
+                        "in new frames: never trained on, never chosen on), 'natural' (the "
+                        "sealed natural-language set, sentences as people type them: only a "
+                        "checkpoint on pretrained text features reads them; never part of "
+                        "'all', it is measured once, by name), 'both' (canonical and "
+                        "paraphrased: every row for each) or 'all' (every one but 'natural')")
+    p.add_argument("--text", choices=TEXTS, default="tokens",
+                   help="the denoiser's instruction input: 'tokens' (the grammar's word ids, "
+                        "default) or 'pretrained' (the frozen pretrained text encoder's "
+                        "features of each sentence, checkpoints/text_encoder: any English "
+                        "sentence). Selects what --train trains and the default checkpoint "
+                        f"(checkpoints/{TRAINING_NAME}_pretrained); with --checkpoint the "
+                        "checkpoint decides")
     p.add_argument("--modes", default=",".join(MODES),
                    help=f"comma-separated planning modes (default {','.join(MODES)}); the "
                         "first of them gives the main row")
@@ -103,6 +113,10 @@ def check_args(parser, args) -> tuple[str, ...]:
     if args.policy != "planner" and (args.train or args.checkpoint or args.reader):
         parser.error("--train, --checkpoint and --reader only make sense with --policy "
                      "planner")
+    if args.policy != "planner" and args.text != "tokens":
+        parser.error("--text selects the planner's denoiser: it needs --policy planner")
+    if args.language == "natural":
+        _check_natural(parser, args)
     if args.reader and not os.path.isdir(args.reader):
         parser.error(f"--reader {args.reader!r} is not a directory (write one with python -m "
                      "experiments.train_reader --out DIR)")
@@ -130,6 +144,19 @@ def check_args(parser, args) -> tuple[str, ...]:
         parser.error(f"--modes must be distinct modes of {MODES}, got {args.modes!r}")
     args.baselines = _check_baselines(parser, args.baselines)
     return modes
+
+
+def _check_natural(parser, args) -> None:
+    """--language natural: read only by the planner's denoiser on pretrained text features
+    (whether the checkpoint is one is checked once it is loaded, experiments.harness.text);
+    the expert reads no instruction, and the baselines and the reader read token ids."""
+    if args.policy != "planner":
+        parser.error("--language natural is read only by a denoiser on pretrained text "
+                     "features: it needs --policy planner")
+    if args.baselines or args.reader:
+        parser.error(f"--{'baselines' if args.baselines else 'reader'} reads token ids, which "
+                     "natural sentences have no way to give: leave it out with --language "
+                     "natural")
 
 
 def _check_baselines(parser, names: str | None) -> tuple[str, ...]:

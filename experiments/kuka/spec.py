@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import warnings
 
+from diffplan import instruction
 from experiments.harness import recipes
 from envs.kuka.grammar import LANGUAGES
 from experiments.harness.core import CHECKPOINT_ROOT, REPO_ROOT
@@ -25,9 +26,11 @@ METHOD_NAMES = {"on_the_fly": "on-the-fly", "one_shot": "one-shot"}
 # (Table 5's "complex" instructions), the development phrasings (never trained on, chosen on),
 # the sealed held-out phrasings (never trained on, never chosen on).
 LANGUAGE_CHOICES = {**{language: (language,) for language in LANGUAGES}, "all": LANGUAGES,
-                    "both": ("canonical", "paraphrased")}
+                    "both": ("canonical", "paraphrased"), "natural": ("natural",)}
 """--language of the Kuka CLIs: one phrasing, canonical and paraphrased ("both", the README's
-Table 5 command), or every one ("all")."""
+Table 5 command), every one that may be looked at ("all": never the sealed natural-language
+set, which is measured once, by name, and only with a denoiser on pretrained features), or the
+natural set ("natural")."""
 CARRIES = ("path", "arc")
 """How a block is carried: along the in-painted path, or the expert's arc around the base."""
 NUM_STEPS = 10
@@ -51,6 +54,25 @@ shipped one is checkpoints/kuka, and `--train` of either experiment trains it (i
 runs/kuka by default)."""
 DEFAULT_CHECKPOINT = os.path.join(CHECKPOINT_ROOT, TRAINING_NAME)
 DEFAULT_TRAIN_DIR = os.path.join(REPO_ROOT, "runs", TRAINING_NAME)
+TEXTS = instruction.TEXTS
+"""The denoiser's instruction input (``--text``, ``envs.kuka.training.Recipe.text``): the
+grammar's token ids (every shipped Kuka checkpoint), or the frozen pretrained text encoder's
+features of each sentence."""
+
+
+def training_name(text: str = "tokens") -> str:
+    """The denoiser's name: "kuka", or "kuka_pretrained" on pretrained text features."""
+    return TRAINING_NAME if text == "tokens" else f"{TRAINING_NAME}_{text}"
+
+
+def default_checkpoint(text: str = "tokens") -> str:
+    """checkpoints/<training_name>: what the CLIs load without --checkpoint."""
+    return os.path.join(CHECKPOINT_ROOT, training_name(text))
+
+
+def default_train_dir(text: str = "tokens") -> str:
+    """runs/<training_name>: where --train writes without --train-dir."""
+    return os.path.join(REPO_ROOT, "runs", training_name(text))
 TRAIN_STEPS = 4600
 TRAIN_BATCH = 32
 TRAIN_TIMESTEPS = 10
@@ -65,17 +87,24 @@ CHECKPOINT_EVERY = 250
 PREDICTION = "x0"
 
 
-def model_config(size: str = "default"):
+def model_config(size: str = "default", text: str = "tokens"):
     """The Kuka denoiser's DenoiserConfig: a model size of experiments.harness.recipes on the Kuka
     planning tensor (24 x 24, 2 condition and 3 generated channels, the Kuka vocabulary, cells
-    embedded with the instruction words' table)."""
+    embedded with the instruction words' table); text "pretrained": the instruction is the
+    pretrained text encoder's features (context_dim D, L = sentences.FEATURE_TOKENS), the
+    cells keep a table of their own (grammar.CELL_TOKENS)."""
     from envs.kuka import grammar
     from envs.kuka.task import NUM_COND_CHANNELS, NUM_GEN_CHANNELS
 
-    return recipes.denoiser_config(size, vocab_size=len(grammar.VOCAB),
-                                   max_tokens=grammar.MAX_TOKENS,
-                                   num_cond_channels=NUM_COND_CHANNELS,
-                                   num_gen_channels=NUM_GEN_CHANNELS)
+    if text == "pretrained":
+        from envs.kuka.sentences import FEATURE_TOKENS, instruction_encoder
+
+        words = dict(vocab_size=len(grammar.CELL_TOKENS), max_tokens=FEATURE_TOKENS,
+                     context_dim=instruction_encoder().dim)
+    else:
+        words = dict(vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS)
+    return recipes.denoiser_config(size, num_cond_channels=NUM_COND_CHANNELS,
+                                   num_gen_channels=NUM_GEN_CHANNELS, **words)
 
 
 def train_config(seed: int = 0, steps: int = TRAIN_STEPS,
@@ -91,14 +120,16 @@ def train_config(seed: int = 0, steps: int = TRAIN_STEPS,
 
 def train_denoiser(out_dir: str, *, seed: int = 0, steps: int = TRAIN_STEPS,
                    model_size: str = "default", checkpoint_every: int = CHECKPOINT_EVERY,
-                   prediction: str = PREDICTION, progress: bool = True) -> float:
+                   prediction: str = PREDICTION, progress: bool = True,
+                   text: str = "tokens") -> float:
     """Trains the Kuka denoiser into out_dir with envs.kuka.training.Recipe (resuming if
-    out_dir holds a checkpoint of the same settings). Returns the wall seconds of this call."""
+    out_dir holds a checkpoint of the same settings), on token ids or (text "pretrained") on
+    pretrained text features. Returns the wall seconds of this call."""
     from envs.kuka.training import Recipe
 
     _, seconds = recipes.train_denoiser(
-        model_config(model_size), train_config(seed, steps, checkpoint_every, prediction),
-        Recipe(), out_dir, model_size=model_size, progress=progress)
+        model_config(model_size, text), train_config(seed, steps, checkpoint_every, prediction),
+        Recipe(text=text), out_dir, model_size=model_size, progress=progress)
     return seconds
 
 
@@ -117,14 +148,22 @@ def mismatch(denoiser, num_steps: int) -> str | None:
     return None
 
 
-def load_checked(checkpoint: str, num_steps: int, kind: str):
-    """The checkpoint's LoadedDenoiser, checked against the Kuka planning tensor and the
-    step count; one-line errors for a missing, unreadable or mismatched checkpoint."""
+def load_checked(checkpoint: str, num_steps: int, kind: str, text: str = "tokens"):
+    """The checkpoint's LoadedDenoiser, checked against the Kuka planning tensor, the step
+    count and the world's instruction input (its vocabulary, or for a checkpoint on
+    pretrained features its cell tokens); one-line errors for a missing, unreadable or
+    mismatched checkpoint (a missing one names `--train`, with `--text` text)."""
     from envs.kuka import grammar
-    from experiments.harness.core import load_checked as load
+    from experiments.harness.core import fail, load_checked as load
+    from experiments.harness.text import input_mismatch
 
-    return load(checkpoint, f"python -m experiments.kuka_{kind} --train",
-                lambda denoiser: mismatch(denoiser, num_steps), grammar.VOCAB)
+    train = f"python -m experiments.kuka_{kind} --train" + (
+        "" if text == "tokens" else f" --text {text}")
+    denoiser = load(checkpoint, train, lambda denoiser: mismatch(denoiser, num_steps))
+    problem = input_mismatch(checkpoint, denoiser, grammar.VOCAB, grammar.CELL_TOKENS)
+    if problem:
+        fail(f"the checkpoint {checkpoint} {problem}")
+    return denoiser
 
 
 def label(mode: str | None, multi: bool, language: str, policy: str, read: bool = False
