@@ -118,3 +118,19 @@ def test_all_never_includes_the_sealed_natural_set():
         assert "natural" not in languages_of("all", features)
         assert languages_of("all", features) == ("canonical", "paraphrased", "unseen")
     assert languages_of("natural", True) == ("natural",)
+
+
+def test_a_training_table_longer_than_L_is_refused_in_one_line():
+    """The grid world's training sentences in an encoder of L = 16 (the longest training
+    instruction is longer): refused, naming the length and L."""
+    from envs.gridworld.sentences import (instruction_encoder, longest_instruction,
+                                          training_index, training_table)
+
+    short = instruction_encoder(None, 16)
+    with pytest.raises(ValueError) as e:
+        training_table(short)
+    index = training_index()
+    longest = longest_instruction(index, short.table(index.sentences).length)
+    assert longest > 16
+    assert str(e.value) == (f"an instruction is {longest} wordpieces long, over the grid "
+                            "world's L = 16")

@@ -22,7 +22,7 @@ from typing import Mapping, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from diffplan.instruction import split_sentences
+from diffplan.instruction import fitting_table, shared_encoder, split_sentences
 from envs.gridworld import grammar
 
 FEATURE_TOKENS = 48
@@ -144,34 +144,26 @@ def training_index() -> SentenceIndex:
     return sentence_index(templates)
 
 
-def check_fits(index: SentenceIndex, lengths: np.ndarray, max_tokens: int) -> None:
-    """ValueError (one line) if an instruction of the index has more than max_tokens
-    wordpieces (lengths int (N,): each sentence's, from its table)."""
-    lengths = np.append(np.asarray(lengths), 0)  # row -1 (absent) counts 0
-    for kind, table in index.lookup.items():
-        longest = int(lengths[table].sum(-1).max())
-        if longest > max_tokens:
-            raise ValueError(f"an instruction is {longest} wordpieces long, over the grid "
-                             f"world's L = {max_tokens}")
+def longest_instruction(index: SentenceIndex, lengths) -> int:
+    """The most wordpieces an instruction of the index has (lengths int (N,): each sentence's,
+    ``SentenceTable.length``; an absent sentence, row -1, counts 0)."""
+    lengths = np.append(np.asarray(lengths), 0)
+    return max(int(lengths[table].sum(-1).max()) for table in index.lookup.values())
 
 
-@functools.lru_cache(maxsize=None)
 def instruction_encoder(directory: str | None = None, max_tokens: int = FEATURE_TOKENS):
     """The grid world's ``diffplan.instruction.InstructionEncoder``: the shipped pretrained
     text encoder (or the Hugging Face-format one in directory) at L = max_tokens; loaded once
-    per process."""
-    from diffplan.instruction import InstructionEncoder
-    from diffplan.pretrained_text import load_text_encoder
-
-    return InstructionEncoder(load_text_encoder(directory), max_tokens)
+    per process (``diffplan.instruction.shared_encoder``)."""
+    return shared_encoder(directory, max_tokens)
 
 
 def training_table(encoder=None):
     """The ``diffplan.instruction.SentenceTable`` of the training sentences
-    (:func:`training_index`, its rows in that order), every instruction checked to fit in L."""
-    encoder = instruction_encoder() if encoder is None else encoder
+    (:func:`training_index`, its rows in that order), refused (one line) unless every
+    instruction fits in the encoder's L (:func:`longest_instruction`)."""
     index = training_index()
-    table = encoder.table(index.sentences)
-    check_fits(index, np.asarray(table.length), encoder.max_tokens)
-    return table
+    return fitting_table(instruction_encoder() if encoder is None else encoder,
+                         index.sentences, functools.partial(longest_instruction, index),
+                         "the grid world's")
 
