@@ -25,6 +25,13 @@ Instruction input (``DenoiserConfig.context_dim``):
                 them (Dense + LayerNorm, then its ``text_layers`` layers). With grid_repr
                 "embed" the ``token_embed`` table then embeds grid cells only (its
                 ``vocab_size`` rows are the world's cell tokens; no word shares them).
+  ``cell_context`` -- with features and "embed": each cell token also has the frozen encoder's
+                features of its name (param ``frozen_cell_features`` (vocab_size, D), written
+                once before training, read under stop_gradient). ONE projection
+                (``context_embed``: Dense to embed_dim + LayerNorm) maps both a cell's name
+                features and the instruction's token features, as the token model's single
+                table embeds both cells and words: a cell named like a word of the instruction
+                starts near it. ``token_embed`` (zero at init) adds a learned per-cell part.
 """
 from __future__ import annotations
 
@@ -48,7 +55,8 @@ __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "ini
 
 GRID_REPRS = ("embed", "class_id")
 _TUPLE_FIELDS = ("widths", "attn_levels", "cross_attn_levels")
-_LATER_FIELDS = {"sentence_end_id": -1, "token_classes": 0, "context_dim": 0}
+_LATER_FIELDS = {"sentence_end_id": -1, "token_classes": 0, "context_dim": 0,
+                 "cell_context": False}
 """DenoiserConfig fields newer than some checkpoints, and the default that means "absent"."""
 PREDICTIONS = ("eps", "x0")
 """What a network predicts for the generated channels: the noise, or the clean plan x0."""
@@ -86,6 +94,11 @@ class DenoiserConfig:
         projected to ``text_dim`` (vocab_size then counts the grid's cell tokens only).
         Token labels (token_classes) and per-sentence positions (sentence_end_id) read token
         ids and are refused with it.
+      cell_context: with context_dim > 0 and grid_repr "embed": cells are embedded from the
+        frozen encoder's features of their names, through the projection the instruction's
+        features go through (module docstring). The names' features are a parameter
+        (``frozen_cell_features``) the training run writes once (``diffplan.train.train(...,
+        fixed_params=...)``); a checkpoint carries them.
     """
 
     vocab_size: int = 64
@@ -107,6 +120,7 @@ class DenoiserConfig:
     sentence_end_id: int = -1
     token_classes: int = 0
     context_dim: int = 0
+    cell_context: bool = False
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -149,6 +163,11 @@ class DenoiserConfig:
         if self.context_dim and self.sentence_end_id >= 0:
             raise ValueError("sentence_end_id numbers word tokens per sentence: a denoiser on "
                              "pretrained features (context_dim > 0) has none; use -1")
+        if not isinstance(self.cell_context, bool):
+            raise ValueError(f"cell_context must be a bool, got {self.cell_context!r}")
+        if self.cell_context and not (self.context_dim and self.grid_repr == "embed"):
+            raise ValueError("cell_context embeds cells by their names' pretrained features: it "
+                             "needs context_dim > 0 and grid_repr 'embed'")
         if not isinstance(self.mid_block, bool):
             raise ValueError(f"mid_block must be a bool, got {self.mid_block!r}")
         # UNet checks: widths, groups, levels, head_dim.
@@ -190,6 +209,19 @@ class DenoiserConfig:
         return models.config_from_dict(cls, d)
 
 
+class FeatureProjection(nn.Module):
+    """Pretrained token features (..., D) -> (..., width): Dense then LayerNorm (params
+    ``proj``, ``ln``). With ``DenoiserConfig.cell_context`` one instance maps both the
+    instruction's features and the cells' name features."""
+
+    width: int
+
+    @nn.compact
+    def __call__(self, features: jax.Array) -> jax.Array:
+        return nn.LayerNorm(name="ln")(nn.Dense(self.width, name="proj")(
+            features.astype(jnp.float32)))
+
+
 class TextContext(NamedTuple):
     """An instruction as the UNet cross-attends to it: the text encoder's output, computed once
     (:meth:`Denoiser.encode_text`) and passed as the denoiser's ``tokens`` in place of the
@@ -211,23 +243,31 @@ class Denoiser(nn.Module):
       float32.
     H and W must be multiples of ``config.min_size_multiple``; L <= config.max_tokens.
     Parameters: ``token_embed`` (only for grid_repr "embed": shared by cells and words),
-    ``text_encoder``, ``unet``, and ``token_head`` when ``config.token_classes`` > 0.
+    ``text_encoder``, ``unet``, ``token_head`` when ``config.token_classes`` > 0, and with
+    ``config.cell_context`` ``frozen_cell_features`` (vocab_size, D) and ``context_embed``.
     """
 
     config: DenoiserConfig
 
     def setup(self):
         cfg = self.config
+        project = None
         if cfg.grid_repr == "embed":
-            self.token_embed = nn.Embed(cfg.vocab_size, cfg.embed_dim,
-                                        embedding_init=nn.initializers.normal(1.0))
+            self.token_embed = nn.Embed(cfg.vocab_size, cfg.embed_dim, embedding_init=(
+                nn.initializers.zeros if cfg.cell_context else nn.initializers.normal(1.0)))
             shared = self.token_embed
         else:
             shared = None
+        if cfg.cell_context:
+            self.cell_features = self.param("frozen_cell_features", nn.initializers.zeros,
+                                            (cfg.vocab_size, cfg.context_dim))
+            self.context_embed = FeatureProjection(cfg.embed_dim)
+            project = self.context_embed
         self.text_encoder = TextEncoder(vocab_size=cfg.vocab_size, max_tokens=cfg.max_tokens,
                                         dim=cfg.text_dim, num_layers=cfg.text_layers,
                                         num_heads=cfg.text_heads, embed_dim=cfg.embed_dim,
                                         embed=None if cfg.context_dim else shared,
+                                        project=project,
                                         sentence_end_id=int(cfg.sentence_end_id),
                                         context_dim=int(cfg.context_dim))
         self.unet = cfg.unet()
@@ -259,6 +299,9 @@ class Denoiser(nn.Module):
         if cfg.grid_repr == "embed":
             idx = jnp.clip(jnp.round(ids), 0, cfg.vocab_size - 1).astype(jnp.int32)
             cell = self.token_embed(idx)
+            if cfg.cell_context:
+                named = self.context_embed(jax.lax.stop_gradient(self.cell_features))  # (V, E)
+                cell = cell + named[idx]
         else:
             cell = (ids / (cfg.vocab_size - 1))[..., None]
         return jnp.concatenate([cell, rest], axis=-1)

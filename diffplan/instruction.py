@@ -191,6 +191,16 @@ class InstructionEncoder:
                     self._features[s] = out[i, :n].astype(np.float16)
         return [self._features[s] for s in sentences]
 
+    def name_features(self, names: Sequence[str]) -> np.ndarray:
+        """float32 (N, D): each name's features, the mean over its wordpieces (without
+        ``[CLS]`` / ``[SEP]``) of the encoder's output on the name alone; zeros for a name with
+        no wordpiece (e.g. ""). What a denoiser with ``cell_context`` embeds a cell by."""
+        out = np.zeros((len(names), self.dim), np.float32)
+        real = [i for i, ids in enumerate(self.pieces(list(names))) if len(ids)]
+        for i, feats in zip(real, self.sentence_features([names[i] for i in real])):
+            out[i] = feats[1:-1].astype(np.float32).mean(axis=0)
+        return out
+
     # --------------------------------------------------------------- the text path
 
     def sentences_of(self, text: str) -> list[str]:

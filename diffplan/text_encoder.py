@@ -85,6 +85,10 @@ class TextEncoder(nn.Module):
       embed_dim: width of the owned token table (default: dim); ignored when ``embed`` is given.
       embed: an optional shared ``nn.Embed`` module (the denoiser's table); if its width differs
         from ``dim`` a Dense projection is added.
+      project: with context_dim: an optional shared module mapping the features (B, L, D) to
+        some width (the denoiser's ``context_embed``, which also embeds its grid cells'
+        names); a Dense ``embed_proj`` follows if that width differs from ``dim``. Default:
+        the encoder's own Dense + LayerNorm to ``dim``.
       sentence_end_id: -1 (absolute positions), or the token id that ends a sentence: positions
         count within each sentence, plus a learned sentence-index table ``sentence_embed``
         (:func:`sentence_positions`).
@@ -103,6 +107,7 @@ class TextEncoder(nn.Module):
     num_heads: int = 4
     embed_dim: Optional[int] = None
     embed: Optional[nn.Module] = None
+    project: Optional[nn.Module] = None
     sentence_end_id: int = -1
     sentence_local: bool = False
     context_dim: int = 0
@@ -166,5 +171,10 @@ class TextEncoder(nn.Module):
                              f"max_tokens={self.max_tokens}")
         features = features.astype(jnp.float32)
         mask = jnp.any(features != 0, axis=-1)
-        x = nn.LayerNorm(name="context_ln")(nn.Dense(self.dim, name="context_proj")(features))
+        if self.project is None:
+            x = nn.LayerNorm(name="context_ln")(nn.Dense(self.dim, name="context_proj")(features))
+        else:
+            x = self.project(features)
+            if x.shape[-1] != self.dim:
+                x = nn.Dense(self.dim, name="embed_proj")(x)
         return x, mask

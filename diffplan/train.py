@@ -447,7 +447,7 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
           extra_metadata: Optional[Mapping[str, Any]] = None,
           val_batch_fn: Optional[Callable] = None, mesh=None, tensorboard: bool = True,
           callback: Optional[Callable[[int, dict], None]] = None,
-          sentences=None) -> TrainResult:
+          sentences=None, fixed_params: Optional[Mapping[str, Any]] = None) -> TrainResult:
     """Trains the denoiser ``model`` through ``fit`` (resuming from ``out_dir``).
 
     Args:
@@ -474,6 +474,9 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
         sentence ids int32 (B, S) (-1 = absent), assembled into features (B, L, D) inside the
         jitted step (``diffplan.instruction.assemble``); the table is the step's data
         argument (``fit``'s ``data``), never a constant of the compiled program.
+      fixed_params: None, or {name: array}: the model's constants (``frozen_*`` parameters,
+        e.g. the denoiser's ``frozen_cell_features``) written into the initial parameters
+        (``diffplan.train_state.init_train_state``); a resumed run keeps its checkpoint's.
 
     Returns:
       ``TrainResult(state, final_loss, last_metrics)``.
@@ -512,7 +515,7 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
         def validate(state):
             return {"val_loss": float(val_loss(state.ema_params, sentences))}
 
-    result = fit(step, lambda: init_train_state(model, cfg, init_batch), steps=cfg.steps,
+    result = fit(step, lambda: init_train_state(model, cfg, init_batch, fixed=fixed_params), steps=cfg.steps,
                  seed=cfg.seed, out_dir=out_dir, metadata=metadata, data=sentences,
                  checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every,
                  progress=progress, jit=False, mesh=mesh, summarize=_denoiser_summary,

@@ -171,8 +171,20 @@ def lr_schedule(config: TrainConfig) -> optax.Schedule:
         decay_steps=config.steps, end_value=0.0)
 
 
+FROZEN_PREFIX = "frozen_"
+"""A parameter whose name starts with this is a constant the model reads under stop_gradient
+(e.g. ``Denoiser``'s ``frozen_cell_features``), written once before training
+(:func:`init_train_state`'s ``fixed``): its gradient is zero, so Adam leaves it as it is, and
+weight decay is not applied to it."""
+
+
+def _frozen(path) -> bool:
+    return any(str(getattr(k, "key", "")).startswith(FROZEN_PREFIX) for k in path)
+
+
 def _decay_mask(params):
-    return jax.tree_util.tree_map(lambda p: jnp.ndim(p) > 1, params)
+    return jax.tree_util.tree_map_with_path(
+        lambda path, p: jnp.ndim(p) > 1 and not _frozen(path), params)
 
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
@@ -182,6 +194,25 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
     if config.grad_clip > 0:
         return optax.chain(optax.clip_by_global_norm(config.grad_clip), adamw)
     return adamw
+
+
+def _with_fixed(params, fixed: Mapping[str, Any]):
+    """params with the named top-level constants replaced (checked: name, shape)."""
+    if not fixed:
+        return params
+    params = dict(params)
+    for name, value in fixed.items():
+        if not name.startswith(FROZEN_PREFIX):
+            raise ValueError(f"only constants ({FROZEN_PREFIX}* parameters) can be fixed before "
+                             f"training, not {name!r}")
+        if name not in params:
+            raise ValueError(f"the model has no parameter {name!r} to fix (it has "
+                             f"{sorted(params)})")
+        value = jnp.asarray(value, params[name].dtype)
+        if value.shape != params[name].shape:
+            raise ValueError(f"{name} must have shape {params[name].shape}, got {value.shape}")
+        params[name] = value
+    return params
 
 
 # ------------------------------------------------------------------------------- keys
@@ -222,9 +253,12 @@ def _init_params(key, *, model, x_shape, tok_shape):
 
 
 def init_train_state(model, config: TrainConfig, init_batch,
-                     key: Optional[jax.Array] = None) -> TrainState:
+                     key: Optional[jax.Array] = None,
+                     fixed: Optional[Mapping[str, Any]] = None) -> TrainState:
     """Initial state; params from ``model.init(key, x0, t, tokens)`` (default key: the init
-    key of ``root_keys(config.seed)``).
+    key of ``root_keys(config.seed)``), then each top-level parameter named in ``fixed``
+    (``frozen_*`` names only: constants of the model, see :data:`FROZEN_PREFIX`) replaced by
+    the given array (same shape; ValueError otherwise).
 
     ``init_batch`` is a ``diffplan.losses.Batch`` (or any object with ``x0`` (B, H, W, C+G)
     and ``tokens`` (B, L)) of arrays or ``jax.ShapeDtypeStruct`` (only shapes are used; the
@@ -241,7 +275,7 @@ def init_train_state(model, config: TrainConfig, init_batch,
     extra = sorted(set(variables) - {"params"})
     if extra:
         raise ValueError(f"model has mutable collections {extra}; only 'params' is supported")
-    params = variables["params"]
+    params = _with_fixed(variables["params"], fixed or {})
     opt_state = make_optimizer(config).init(params)
     return TrainState(params=params, ema_params=jax.tree_util.tree_map(jnp.copy, params),
                       opt_state=opt_state, step=jnp.zeros((), jnp.int32))

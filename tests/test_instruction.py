@@ -170,6 +170,76 @@ def test_padding_rows_do_not_change_the_features_denoisers_output():
     assert variables["params"]["token_embed"]["embedding"].shape[0] == len(grammar.CELL_TOKENS)
 
 
+def test_name_features_are_the_mean_of_the_names_wordpieces(encoder):
+    """A cell's name features: the encoder's output on the name alone, averaged over its
+    wordpieces without [CLS] / [SEP] (plain numpy on the sentence features); "" is zeros."""
+    names = sentences.cell_names()
+    assert names[:4] == ("", "unseen", "empty", "obstacle")
+    assert names[4:] == tuple(grammar.CELL_TOKENS[4:])
+    table = sentences.cell_features(encoder)
+    assert table.shape == (len(grammar.CELL_TOKENS), encoder.dim) and table.dtype == np.float32
+    np.testing.assert_array_equal(table[0], 0.0)
+    for i in (1, 4, 11):  # "unseen", "apple", "broccoli": one and several wordpieces
+        rows = np.asarray(encoder.sentence_features([names[i]])[0], np.float32)
+        assert len(rows) == len(encoder.pieces([names[i]])[0]) >= 3
+        np.testing.assert_allclose(table[i], rows[1:-1].mean(axis=0), rtol=0, atol=1e-6)
+    # Distinct names, distinct rows.
+    assert len({row.tobytes() for row in table}) == len(names)
+
+
+def test_cells_named_by_features_share_the_instructions_projection():
+    """cell_context: a cell's embedding is the shared projection of its name's features (plus
+    a learned part, zero at init); the text encoder has no projection of its own; the names'
+    features get no gradient and no weight decay, and init_train_state writes them."""
+    from diffplan.denoiser import Denoiser, DenoiserConfig
+    from diffplan.train_state import TrainConfig, _decay_mask, init_train_state
+    from types import SimpleNamespace
+
+    model, variables = features_denoiser(cell_context=True)
+    params = variables["params"]
+    assert "context_proj" not in params["text_encoder"] and "context_embed" in params
+    assert params["frozen_cell_features"].shape == (len(grammar.CELL_TOKENS), 384)
+    ids = jnp.arange(len(grammar.CELL_TOKENS), dtype=jnp.float32).reshape(1, 1, -1, 1)
+    fresh = Denoiser(model.config).init(jax.random.PRNGKey(0), jnp.zeros((1, 8, 8, 8)),
+                                        jnp.zeros((1,), jnp.int32),
+                                        jnp.ones((1, 4, 384)))["params"]
+    np.testing.assert_array_equal(np.asarray(fresh["token_embed"]["embedding"]), 0.0)
+    cells = model.apply(variables, jnp.pad(ids, ((0, 0), (0, 0), (0, 0), (0, 7))),
+                        method=Denoiser.encode_grid)[0, 0, :, :model.config.embed_dim]
+    proj = model.apply(variables, params["frozen_cell_features"],
+                       method=lambda m, f: m.context_embed(f))
+    np.testing.assert_allclose(np.asarray(cells), np.asarray(
+        proj + params["token_embed"]["embedding"]), atol=1e-5)
+
+    x = jax.random.normal(jax.random.PRNGKey(1), (2, 16, 16, 8))
+    x = x.at[..., 0].set(jax.random.randint(jax.random.PRNGKey(2), (2, 16, 16), 0, 19))
+    feats = jax.random.normal(jax.random.PRNGKey(3), (2, FEATURE_TOKENS, 384))
+    grads = jax.grad(lambda p: jnp.sum(model.apply({"params": p}, x, jnp.array([3, 9]),
+                                                   feats) ** 2))(params)
+    np.testing.assert_array_equal(np.asarray(grads["frozen_cell_features"]), 0.0)
+    assert float(jnp.abs(grads["context_embed"]["proj"]["kernel"]).max()) > 0
+    mask = _decay_mask(params)
+    assert mask["frozen_cell_features"] is False and mask["context_embed"]["proj"]["kernel"]
+
+    table = np.random.default_rng(0).normal(size=(len(grammar.CELL_TOKENS), 384))
+    init = SimpleNamespace(x0=jax.ShapeDtypeStruct((1, 16, 16, 8), jnp.float32),
+                           tokens=jax.ShapeDtypeStruct((1, FEATURE_TOKENS, 384), jnp.float32))
+    state = init_train_state(model, TrainConfig(steps=10, warmup_steps=1, batch_size=2, num_gen_channels=3),
+                             init, fixed={"frozen_cell_features": table})
+    np.testing.assert_allclose(np.asarray(state.params["frozen_cell_features"]), table,
+                               rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(state.ema_params["frozen_cell_features"]),
+                                  np.asarray(state.params["frozen_cell_features"]))
+    with pytest.raises(ValueError, match="only constants"):
+        init_train_state(model, TrainConfig(steps=10, warmup_steps=1, batch_size=2, num_gen_channels=3), init,
+                         fixed={"unet": table})
+    with pytest.raises(ValueError, match="must have shape"):
+        init_train_state(model, TrainConfig(steps=10, warmup_steps=1, batch_size=2, num_gen_channels=3), init,
+                         fixed={"frozen_cell_features": table[:3]})
+    with pytest.raises(ValueError, match="cell_context"):
+        DenoiserConfig(vocab_size=19, context_dim=0, cell_context=True)
+
+
 def test_planner_takes_features_once_and_refuses_the_wrong_input():
     """Planner.init keeps the text context the UNet cross-attends to (computed once per
     episode); a denoiser call on it equals one on the features themselves."""

@@ -167,3 +167,16 @@ def training_table(encoder=None):
                          index.sentences, functools.partial(longest_instruction, index),
                          "the grid world's")
 
+
+
+def cell_names() -> tuple[str, ...]:
+    """The name of each cell token (``grammar.CELL_TOKENS``, in order) a denoiser with
+    ``DenoiserConfig.cell_context`` embeds the cell by: an object's name as is, a marker
+    without its brackets ("<unseen>" -> "unseen"), padding as "" (zero features)."""
+    return tuple("" if t == "<pad>" else t.strip("<>") for t in grammar.CELL_TOKENS)
+
+
+def cell_features(encoder=None) -> np.ndarray:
+    """float32 (len(CELL_TOKENS), D): the encoder's features of each cell's name
+    (:func:`cell_names`, ``InstructionEncoder.name_features``)."""
+    return (instruction_encoder() if encoder is None else encoder).name_features(cell_names())

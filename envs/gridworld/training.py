@@ -474,6 +474,16 @@ class Recipe:
 
         return training_table()
 
+    def fixed_params(self, model_config) -> dict | None:
+        """The model's constants written before training: for a denoiser that embeds cells by
+        their names (``DenoiserConfig.cell_context``), the encoder's features of the cell
+        names (``envs.gridworld.sentences.cell_features``); else None."""
+        if not getattr(model_config, "cell_context", False):
+            return None
+        from envs.gridworld.sentences import cell_features
+
+        return {"frozen_cell_features": cell_features()}
+
     def text_metadata(self) -> dict:
         """What a checkpoint records of its instruction input: the vocabulary its token ids
         index, or (text "pretrained") the text encoder (files' sha256, L) and the cell tokens

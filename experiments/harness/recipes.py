@@ -20,7 +20,8 @@ MODEL_SIZES = {
 
 
 def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_channels: int,
-                    num_gen_channels: int, grid_repr: str = "embed", context_dim: int = 0):
+                    num_gen_channels: int, grid_repr: str = "embed", context_dim: int = 0,
+                    cell_context: bool = False):
     """The DenoiserConfig of a model size on a world's planning tensor and vocabulary (or,
     with context_dim D > 0, a frozen pretrained text encoder's D-wide token features:
     vocab_size then counts the world's cell tokens only)."""
@@ -31,7 +32,8 @@ def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_cha
     return DenoiserConfig(vocab_size=vocab_size, max_tokens=max_tokens,
                           num_cond_channels=num_cond_channels,
                           num_gen_channels=num_gen_channels, grid_repr=grid_repr,
-                          context_dim=context_dim, **MODEL_SIZES[size])
+                          context_dim=context_dim, cell_context=cell_context,
+                          **MODEL_SIZES[size])
 
 
 def warmup(warmup_steps: int, steps: int) -> int:
@@ -68,7 +70,8 @@ def train_denoiser(model_config, config, recipe, out_dir: str, *, model_size: st
     network learns the learned-goal baseline instead (``diffplan.baselines.goal``). Returns
     (TrainResult, seconds). A recipe whose ``sentences()`` gives a sentence table (text
     "pretrained") trains on the pretrained text features assembled from it inside the step
-    (``diffplan.train.train(..., sentences=...)``)."""
+    (``diffplan.train.train(..., sentences=...)``); a recipe's ``fixed_params()`` (if it has
+    one) gives the model's constants, e.g. its cells' name features."""
     from diffplan.baselines.goal import GoalClassifier
     from diffplan.denoiser import Denoiser
     from diffplan.train import train
@@ -76,8 +79,9 @@ def train_denoiser(model_config, config, recipe, out_dir: str, *, model_size: st
     start = time.time()
     model = (GoalClassifier if config.objective == "goal" else Denoiser)(model_config)
     sentences = getattr(recipe, "sentences", lambda: None)()
+    fixed = getattr(recipe, "fixed_params", lambda model_config: None)(model_config)
     result = train(model, model_config, config, recipe.batch_fn(), out_dir,
                    init_batch=recipe.init_batch(), progress=progress, callback=callback,
                    extra_metadata={**recipe.metadata(), "model_size": model_size},
-                   sentences=sentences)
+                   sentences=sentences, fixed_params=fixed)
     return result, time.time() - start
