@@ -150,8 +150,9 @@ def write_note(out_dir, train_dir, results, command, remarks=(), world: str = "g
         *([f"- task specs (kind, multi, language), one share of every batch each (a spec "
            f"listed twice has twice the share): {meta['extra']['specs']}"]
           if "specs" in meta.get("extra", {}) else []),
-        f"- diffusion training timesteps: {train_config.get('num_train_timesteps')}, drawn "
-        f"with timestep_power {train_config.get('timestep_power', 1.0)} (1: uniform)",
+        *([f"- diffusion training timesteps: {train_config['num_train_timesteps']}, drawn "
+           f"with timestep_power {train_config.get('timestep_power', 1.0)} (1: uniform)"]
+          if train_config.get("num_train_timesteps") else []),
         f"- training wall time: {last.get('wall_time', float('nan')) / 60:.1f} min on a 2-core "
         f"CPU (last logged loss {last.get('loss', float('nan')):.4f})",
         "- exported with: `python -m experiments.ship_checkpoint` (EMA parameters only)",
