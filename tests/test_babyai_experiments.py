@@ -139,6 +139,8 @@ def test_bc_learns_the_experts_actions_on_the_demonstrations(run):
     (["--level", "goto", "--demos", "10"], "--demos and --detour-prob set what --train"),
     (["--level", "goto", "--demos-sweep", "100,x"], "comma-separated integers"),
     (["--level", "goto", "--modes", "one_shot"], "--modes must be"),
+    (["--level", "goto", "--seed", "4242"], "must be below 2048"),
+    (["--level", "goto", "--seeds", "2001,2048"], "must be below 2048"),
 ])
 def test_bad_input_is_one_line(argv, needle, capsys):
     with pytest.raises(SystemExit) as info:

@@ -131,6 +131,15 @@ def check_args(parser, args):
     if not modes or any(m not in MODES for m in modes) or len(set(modes)) != len(modes):
         parser.error(f"--modes must be distinct names of {','.join(MODES)}, got {args.modes!r}")
     seeds = harness.parse_seeds(parser, args)
+    from envs.babyai.seeds import EPISODE_BITS, SEED_BITS
+
+    for seed in seeds:
+        if seed >= 2 ** SEED_BITS:
+            parser.error(f"a BabyAI evaluation seed must be below {2 ** SEED_BITS} (episode i of "
+                         f"seed S is minigrid's seed S * 2**{EPISODE_BITS} + i), got {seed}")
+    if args.episodes is not None and args.episodes > 2 ** EPISODE_BITS:
+        parser.error(f"--episodes must be at most {2 ** EPISODE_BITS} per seed, got "
+                     f"{args.episodes}")
     if sweep:
         args.demos_sweep = _counts(args.demos_sweep, "--demos-sweep", parser)
         args.sweep_dir = args.sweep_dir or os.path.join(harness.REPO_ROOT, "runs",
