@@ -58,11 +58,14 @@ def _load_bc(spec, args, checkpoint: str):
 
 
 def evaluate(spec, args, seeds, modes, denoiser, bc, progress: bool) -> tuple[list, dict]:
-    """The rows (ours in each mode, BC, the bot) pooled over the seeds, and the number of
-    episodes each seed counted (all, or those of --mission)."""
+    """The rows (ours in each mode, with --random-weights the same denoiser with random
+    weights, BC, the bot) pooled over the seeds, and the number of episodes each seed counted
+    (all, or those of --mission)."""
     from envs.babyai.config import make_config
+    from experiments.harness.ablations import random_weights
 
     config, task = make_config(spec.level), spec.task()
+    control = random_weights(denoiser) if args.random_weights else None
     parts = {}
     counted = {}
     for seed in seeds:
@@ -78,6 +81,10 @@ def evaluate(spec, args, seeds, modes, denoiser, bc, progress: bool) -> tuple[li
         for mode in modes:
             parts.setdefault(METHOD_NAMES[mode], {})[seed] = be.run_planner(
                 spec, task, denoiser, mode, eps, seed, idx, args.batch_size, progress)
+        if control is not None:
+            parts.setdefault(bt.RANDOM_ROW, {})[seed] = be.run_planner(
+                spec, task, control, "warm_start", eps, seed, idx, args.batch_size, progress,
+                name=bt.RANDOM_ROW)
         if bc is not None:
             parts.setdefault("BC", {})[seed] = be.run_policy(
                 spec, task, bc, eps, seed, idx, max(args.batch_size, 250), progress)

@@ -104,9 +104,10 @@ def _planner_runner(task, slots: int, progress: bool = True):
 
 
 def run_planner(spec, task, denoiser, mode: str, eps, seed: int, idx, slots: int,
-                progress: bool = True):
+                progress: bool = True, name: str | None = None):
     """One planning mode on the episodes (evaluation episodes idx of the seed; a slot pool of
-    ``slots``): :func:`_measured`'s tuple; seconds include compiling and the replay."""
+    ``slots``): :func:`_measured`'s tuple; seconds include compiling and the replay. name: the
+    row's name in the bar (default the mode's)."""
     from diffplan.planner import Planner
     from envs.babyai.config import make_config
 
@@ -115,7 +116,7 @@ def run_planner(spec, task, denoiser, mode: str, eps, seed: int, idx, slots: int
     planner = Planner(denoiser, spec.planner_config(mode))
     per_call = min(n, 4 * slots)
     run = _planner_runner(task, min(slots, per_call), progress)
-    desc = f"{spec.level} {METHOD_NAMES[mode]} (seed {seed})"
+    desc = f"{spec.level} {name or METHOD_NAMES[mode]} (seed {seed})"
     bar = _bar(desc, n, progress, compiles=True)
     try:
         out = _in_calls(lambda k, e, token: run(planner, k, e, token), eps, seed, idx, per_call,

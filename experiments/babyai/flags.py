@@ -60,6 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="episodes planned at once (the slot pool; default 64)")
     p.add_argument("--mission", metavar="TEXT",
                    help="count only the episodes whose mission is TEXT ('go to the red ball')")
+    p.add_argument("--random-weights", action="store_true",
+                   help="add a control row: the same planner (warm start, the same psi) with "
+                        "a denoiser of random weights, showing what the hand-written parts "
+                        "achieve without anything learned")
     p.add_argument("--no-bc", action="store_true", help="leave out the BC row")
     p.add_argument("--no-bot", action="store_true", help="leave out the BabyAI bot's row")
     p.add_argument("--demos-sweep", metavar="N1,N2,...",

@@ -18,7 +18,11 @@ COLUMNS = (
                                    "compilation (a load when cached), acting, and the replay "
                                    "in minigrid"))
 
-OTHER_ROWS = {"BC": "behaviour cloning of the same demonstrations, on the same condition "
+RANDOM_ROW = "random weights, warm start"
+OTHER_ROWS = {RANDOM_ROW: "the same planner, psi and triggers with a denoiser "
+                                           "of random weights (--random-weights): nothing "
+                                           "learned",
+              "BC": "behaviour cloning of the same demonstrations, on the same condition "
                     "channels (one-hot colour and type of the mission)",
               "BabyAI bot": "minigrid.utils.baby_ai_bot.BabyAIBot, run in minigrid"}
 
