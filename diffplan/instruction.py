@@ -410,6 +410,25 @@ def text_metadata(text: str, vocabulary: Sequence[str], cell_tokens: Sequence[st
                                            instruction_encoder.max_tokens)}
 
 
+PAD_TOKEN = "<pad>"
+
+
+def cell_names(cell_tokens: Sequence[str]) -> tuple[str, ...]:
+    """The name of each cell token a denoiser with ``DenoiserConfig.cell_context`` embeds the
+    cell by: a word as is ("apple", "red"), a marker without its brackets ("<unseen>" ->
+    "unseen"), the padding token as "" (zero features)."""
+    return tuple("" if t == PAD_TOKEN else t.strip("<>") for t in cell_tokens)
+
+
+def fixed_cell_params(model_config, cell_tokens: Sequence[str], encoder) -> dict | None:
+    """A world recipe's ``fixed_params(model_config)``: for a denoiser that embeds cells by
+    their names (``cell_context``), ``{"frozen_cell_features": (len(cell_tokens), D)}``, the
+    features of :func:`cell_names` by ``encoder()`` (called only then); else None."""
+    if not getattr(model_config, "cell_context", False):
+        return None
+    return {"frozen_cell_features": encoder().name_features(cell_names(cell_tokens))}
+
+
 @functools.lru_cache(maxsize=None)
 def shared_encoder(directory: str | None, max_tokens: int) -> InstructionEncoder:
     """The :class:`InstructionEncoder` of the shipped pretrained text encoder (directory None)

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from diffplan.instruction import (InstructionEncoder, SentenceTable, assemble, assemble_batch,
+from diffplan.instruction import (InstructionEncoder, SentenceTable, assemble, assemble_batch, cell_names,
                                   split_sentences)
 from diffplan.pretrained_text import load_text_encoder
 from envs.gridworld import grammar, natural, sentences
@@ -173,7 +173,7 @@ def test_padding_rows_do_not_change_the_features_denoisers_output():
 def test_name_features_are_the_mean_of_the_names_wordpieces(encoder):
     """A cell's name features: the encoder's output on the name alone, averaged over its
     wordpieces without [CLS] / [SEP] (plain numpy on the sentence features); "" is zeros."""
-    names = sentences.cell_names()
+    names = cell_names(grammar.CELL_TOKENS)
     assert names[:4] == ("", "unseen", "empty", "obstacle")
     assert names[4:] == tuple(grammar.CELL_TOKENS[4:])
     table = sentences.cell_features(encoder)

@@ -22,7 +22,7 @@ from typing import Mapping, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from diffplan.instruction import fitting_table, shared_encoder, split_sentences
+from diffplan.instruction import cell_names, fitting_table, shared_encoder, split_sentences
 from envs.gridworld import grammar
 
 FEATURE_TOKENS = 48
@@ -169,14 +169,9 @@ def training_table(encoder=None):
 
 
 
-def cell_names() -> tuple[str, ...]:
-    """The name of each cell token (``grammar.CELL_TOKENS``, in order) a denoiser with
-    ``DenoiserConfig.cell_context`` embeds the cell by: an object's name as is, a marker
-    without its brackets ("<unseen>" -> "unseen"), padding as "" (zero features)."""
-    return tuple("" if t == "<pad>" else t.strip("<>") for t in grammar.CELL_TOKENS)
-
-
 def cell_features(encoder=None) -> np.ndarray:
-    """float32 (len(CELL_TOKENS), D): the encoder's features of each cell's name
-    (:func:`cell_names`, ``InstructionEncoder.name_features``)."""
-    return (instruction_encoder() if encoder is None else encoder).name_features(cell_names())
+    """float32 (len(CELL_TOKENS), D): the encoder's features of each cell token's name
+    (``diffplan.instruction.cell_names``: "<unseen>" -> "unseen", padding -> zeros), what a
+    denoiser with ``DenoiserConfig.cell_context`` embeds a cell by."""
+    return (instruction_encoder() if encoder is None else encoder).name_features(
+        cell_names(grammar.CELL_TOKENS))

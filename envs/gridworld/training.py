@@ -477,12 +477,11 @@ class Recipe:
     def fixed_params(self, model_config) -> dict | None:
         """The model's constants written before training: for a denoiser that embeds cells by
         their names (``DenoiserConfig.cell_context``), the encoder's features of the cell
-        names (``envs.gridworld.sentences.cell_features``); else None."""
-        if not getattr(model_config, "cell_context", False):
-            return None
-        from envs.gridworld.sentences import cell_features
+        tokens' names (``diffplan.instruction.fixed_cell_params``); else None."""
+        from diffplan.instruction import fixed_cell_params
+        from envs.gridworld.sentences import instruction_encoder
 
-        return {"frozen_cell_features": cell_features()}
+        return fixed_cell_params(model_config, grammar.CELL_TOKENS, instruction_encoder)
 
     def text_metadata(self) -> dict:
         """What a checkpoint records of its instruction input: the vocabulary its token ids

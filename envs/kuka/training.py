@@ -275,6 +275,14 @@ class Recipe:
         cache), or None with text "tokens"."""
         return training_table() if self.text == "pretrained" else None
 
+    def fixed_params(self, model_config) -> dict | None:
+        """The model's constants written before training: for a denoiser that embeds cells by
+        their names (``DenoiserConfig.cell_context``), the encoder's features of the block
+        colours' names (``diffplan.instruction.fixed_cell_params``); else None."""
+        from diffplan.instruction import fixed_cell_params
+
+        return fixed_cell_params(model_config, grammar.CELL_TOKENS, instruction_encoder)
+
     def metadata(self) -> dict:
         """What a checkpoint records of the recipe (compared when resuming): with text
         "pretrained" the text encoder and the cell tokens instead of the vocabulary

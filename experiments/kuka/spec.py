@@ -92,7 +92,8 @@ def model_config(size: str = "default", text: str = "tokens"):
     planning tensor (24 x 24, 2 condition and 3 generated channels, the Kuka vocabulary, cells
     embedded with the instruction words' table); text "pretrained": the instruction is the
     pretrained text encoder's features (context_dim D, L = sentences.FEATURE_TOKENS), the
-    cells keep a table of their own (grammar.CELL_TOKENS)."""
+    cells (grammar.CELL_TOKENS) embedded by their colour names' features through the
+    instruction's projection (``DenoiserConfig.cell_context``)."""
     from envs.kuka import grammar
     from envs.kuka.task import NUM_COND_CHANNELS, NUM_GEN_CHANNELS
 
@@ -100,7 +101,7 @@ def model_config(size: str = "default", text: str = "tokens"):
         from envs.kuka.sentences import FEATURE_TOKENS, instruction_encoder
 
         words = dict(vocab_size=len(grammar.CELL_TOKENS), max_tokens=FEATURE_TOKENS,
-                     context_dim=instruction_encoder().dim)
+                     context_dim=instruction_encoder().dim, cell_context=True)
     else:
         words = dict(vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS)
     return recipes.denoiser_config(size, num_cond_channels=NUM_COND_CHANNELS,
