@@ -30,8 +30,8 @@ import optax
 
 from diffplan import sharding as shd
 from diffplan.schedule import cosine_schedule
-from diffplan.train_state import (TrainConfig, TrainState, hashable, lr_schedule,
-                                  make_optimizer)
+from diffplan.train_state import (TrainConfig, TrainState, hashable, is_frozen,
+                                  lr_schedule, make_optimizer)
 
 __all__ = ["Batch", "check_batch", "with_token_labels", "diffusion_loss", "draw_timesteps",
            "token_loss", "make_train_step", "make_val_loss"]
@@ -254,8 +254,9 @@ def _make_core_step(model, config: TrainConfig, alphas_cumprod):
         params = optax.apply_updates(state.params, updates)
         n = state.step.astype(jnp.float32)
         decay = jnp.minimum(config.ema_decay, (1.0 + n) / (10.0 + n))
-        ema = jax.tree_util.tree_map(lambda e, p: decay * e + (1.0 - decay) * p,
-                                     state.ema_params, params)
+        ema = jax.tree_util.tree_map_with_path(
+            lambda path, e, p: e if is_frozen(path) else decay * e + (1.0 - decay) * p,
+            state.ema_params, params)  # a frozen constant stays exactly as written
         new_state = TrainState(params=params, ema_params=ema, opt_state=opt_state,
                                step=state.step + 1)
         metrics = {"loss": loss, "grad_norm": grad_norm, "lr": schedule(state.step), **parts}

@@ -178,13 +178,14 @@ FROZEN_PREFIX = "frozen_"
 weight decay is not applied to it."""
 
 
-def _frozen(path) -> bool:
+def is_frozen(path) -> bool:
+    """Whether a parameter's pytree path names a constant (:data:`FROZEN_PREFIX`)."""
     return any(str(getattr(k, "key", "")).startswith(FROZEN_PREFIX) for k in path)
 
 
 def _decay_mask(params):
     return jax.tree_util.tree_map_with_path(
-        lambda path, p: jnp.ndim(p) > 1 and not _frozen(path), params)
+        lambda path, p: jnp.ndim(p) > 1 and not is_frozen(path), params)
 
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:

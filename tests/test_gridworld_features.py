@@ -57,6 +57,15 @@ def test_train_checkpoint_and_evaluate_in_the_natural_language(trained):
     assert extra["text_encoder"]["max_tokens"] == FEATURE_TOKENS
     assert extra["text_encoder"]["directory"] is None  # the shipped encoder
     assert "vocabulary" not in extra
+    # Its cells are embedded by their names' features, written before the first step and
+    # unchanged by training (no gradient, no weight decay): the checkpoint carries them.
+    assert meta["model_config"]["cell_context"] is True
+    from diffplan.checkpoint import load_params_for_eval
+    from envs.gridworld.sentences import cell_features
+
+    params, _ = load_params_for_eval(train_dir)
+    np.testing.assert_array_equal(np.asarray(params["frozen_cell_features"]),
+                                  cell_features())
 
 
 def test_try_instruction_plans_a_users_sentence(trained, tmp_path, capsys):
