@@ -56,7 +56,7 @@ __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "ini
 GRID_REPRS = ("embed", "class_id")
 _TUPLE_FIELDS = ("widths", "attn_levels", "cross_attn_levels")
 _LATER_FIELDS = {"sentence_end_id": -1, "token_classes": 0, "context_dim": 0,
-                 "cell_context": False}
+                 "cell_context": False, "standardize": False}
 """DenoiserConfig fields newer than some checkpoints, and the default that means "absent"."""
 PREDICTIONS = ("eps", "x0")
 """What a network predicts for the generated channels: the noise, or the clean plan x0."""
@@ -99,6 +99,12 @@ class DenoiserConfig:
         features go through (module docstring). The names' features are a parameter
         (``frozen_cell_features``) the training run writes once (``diffplan.train.train(...,
         fixed_params=...)``); a checkpoint carries them.
+      standardize: with context_dim > 0: every real token's features (and with cell_context
+        every cell name's) are standardised per dimension, (f - mean) / scale, before the
+        projection, with constants of the training sentences' features (params
+        ``frozen_feature_mean`` and ``frozen_feature_scale`` (D,), written before training);
+        padding rows stay zero. The encoder's features are anisotropic (any two names share
+        cosine 0.25), which standardising removes.
     """
 
     vocab_size: int = 64
@@ -121,6 +127,7 @@ class DenoiserConfig:
     token_classes: int = 0
     context_dim: int = 0
     cell_context: bool = False
+    standardize: bool = False
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -168,6 +175,11 @@ class DenoiserConfig:
         if self.cell_context and not (self.context_dim and self.grid_repr == "embed"):
             raise ValueError("cell_context embeds cells by their names' pretrained features: it "
                              "needs context_dim > 0 and grid_repr 'embed'")
+        if not isinstance(self.standardize, bool):
+            raise ValueError(f"standardize must be a bool, got {self.standardize!r}")
+        if self.standardize and not self.context_dim:
+            raise ValueError("standardize applies to pretrained features: it needs "
+                             "context_dim > 0")
         if not isinstance(self.mid_block, bool):
             raise ValueError(f"mid_block must be a bool, got {self.mid_block!r}")
         # UNet checks: widths, groups, levels, head_dim.
@@ -263,6 +275,11 @@ class Denoiser(nn.Module):
                                             (cfg.vocab_size, cfg.context_dim))
             self.context_embed = FeatureProjection(cfg.embed_dim)
             project = self.context_embed
+        if cfg.standardize:
+            self.feature_mean = self.param("frozen_feature_mean", nn.initializers.zeros,
+                                           (cfg.context_dim,))
+            self.feature_scale = self.param("frozen_feature_scale", nn.initializers.ones,
+                                            (cfg.context_dim,))
         self.text_encoder = TextEncoder(vocab_size=cfg.vocab_size, max_tokens=cfg.max_tokens,
                                         dim=cfg.text_dim, num_layers=cfg.text_layers,
                                         num_heads=cfg.text_heads, embed_dim=cfg.embed_dim,
@@ -280,13 +297,29 @@ class Denoiser(nn.Module):
         if not self.config.token_classes:
             raise ValueError("this denoiser has no token head (DenoiserConfig.token_classes "
                              "is 0); a batch with token labels needs token_classes > 0")
-        context, _ = self.text_encoder(tokens)
+        context, _ = self._text(tokens)
         return self.token_head(context)
+
+    def _standardized(self, features: jax.Array) -> jax.Array:
+        """(..., D) features standardised per dimension (``config.standardize``), all-zero
+        rows (padding) left zero; as they are otherwise."""
+        if not self.config.standardize:
+            return features
+        mean = jax.lax.stop_gradient(self.feature_mean)
+        scale = jax.lax.stop_gradient(self.feature_scale)
+        real = jnp.any(features != 0, axis=-1, keepdims=True)
+        return jnp.where(real, (features.astype(jnp.float32) - mean) / scale, 0.0)
+
+    def _text(self, tokens: jax.Array):
+        """The text encoder's (features, mask) of token ids or (standardised) features."""
+        if self.config.context_dim and tokens.ndim == 3:
+            tokens = self._standardized(tokens)
+        return self.text_encoder(tokens)
 
     def encode_text(self, tokens: jax.Array) -> TextContext:
         """The instruction's :class:`TextContext` (what the UNet cross-attends to): tokens
         (B, L) int32, or (B, L, D) features -> features (B, L, text_dim), mask (B, L)."""
-        return TextContext(*self.text_encoder(tokens))
+        return TextContext(*self._text(tokens))
 
     def encode_grid(self, x_t: jax.Array) -> jax.Array:
         """(B, H, W, C+G) planning tensor -> (B, H, W, F) UNet input features.
@@ -300,7 +333,8 @@ class Denoiser(nn.Module):
             idx = jnp.clip(jnp.round(ids), 0, cfg.vocab_size - 1).astype(jnp.int32)
             cell = self.token_embed(idx)
             if cfg.cell_context:
-                named = self.context_embed(jax.lax.stop_gradient(self.cell_features))  # (V, E)
+                named = self.context_embed(self._standardized(
+                    jax.lax.stop_gradient(self.cell_features)))  # (V, E)
                 cell = cell + named[idx]
         else:
             cell = (ids / (cfg.vocab_size - 1))[..., None]
@@ -330,7 +364,7 @@ class Denoiser(nn.Module):
                 what = f"(B={b}, L, {cfg.context_dim}) pretrained features" if cfg.context_dim \
                     else f"(B={b}, L) token ids"
                 raise ValueError(f"tokens must be {what}, got shape {tokens.shape}")
-            context, mask = self.text_encoder(tokens)
+            context, mask = self._text(tokens)
         x_t = x_t.astype(jnp.float32)
         if self.config.token_classes and self.is_initializing():
             self.token_head(context)  # create its params with the rest

@@ -420,13 +420,28 @@ def cell_names(cell_tokens: Sequence[str]) -> tuple[str, ...]:
     return tuple("" if t == PAD_TOKEN else t.strip("<>") for t in cell_tokens)
 
 
-def fixed_cell_params(model_config, cell_tokens: Sequence[str], encoder) -> dict | None:
-    """A world recipe's ``fixed_params(model_config)``: for a denoiser that embeds cells by
-    their names (``cell_context``), ``{"frozen_cell_features": (len(cell_tokens), D)}``, the
-    features of :func:`cell_names` by ``encoder()`` (called only then); else None."""
-    if not getattr(model_config, "cell_context", False):
-        return None
-    return {"frozen_cell_features": encoder().name_features(cell_names(cell_tokens))}
+def feature_statistics(table: SentenceTable) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, scale), float32 (D,) each: the per-dimension mean and standard deviation (floored
+    at 1e-3) of every token row of a sentence table, the constants a denoiser with
+    ``DenoiserConfig.standardize`` standardises its features with."""
+    rows = np.asarray(table.features, np.float32)
+    return rows.mean(axis=0), np.maximum(rows.std(axis=0), 1e-3)
+
+
+def fixed_text_params(model_config, cell_tokens: Sequence[str], encoder, table) -> dict | None:
+    """A world recipe's ``fixed_params(model_config)``: the constants a features denoiser
+    reads, written before training; None if it reads none. With ``cell_context``:
+    ``frozen_cell_features`` (len(cell_tokens), D), the features of :func:`cell_names` by
+    ``encoder()``; with ``standardize``: ``frozen_feature_mean`` and ``frozen_feature_scale``
+    (D,), :func:`feature_statistics` of ``table()``, the training sentence table (each
+    callable is called only when needed)."""
+    fixed = {}
+    if getattr(model_config, "cell_context", False):
+        fixed["frozen_cell_features"] = encoder().name_features(cell_names(cell_tokens))
+    if getattr(model_config, "standardize", False):
+        fixed["frozen_feature_mean"], fixed["frozen_feature_scale"] = \
+            feature_statistics(table())
+    return fixed or None
 
 
 @functools.lru_cache(maxsize=None)

@@ -240,6 +240,46 @@ def test_cells_named_by_features_share_the_instructions_projection():
         DenoiserConfig(vocab_size=19, context_dim=0, cell_context=True)
 
 
+def test_standardized_features_equal_standardizing_by_hand(small):
+    """standardize: a denoiser reads (f - mean) / scale at real tokens and zeros at padding,
+    i.e. exactly what the same network without it reads of hand-standardised features; its
+    constants are the training table's per-dimension statistics (plain numpy)."""
+    import dataclasses
+
+    from diffplan.denoiser import Denoiser
+    from diffplan.instruction import feature_statistics, fixed_text_params
+
+    _, table = small
+    mean, scale = feature_statistics(table)
+    rows = np.asarray(table.features, np.float32)
+    np.testing.assert_allclose(mean, rows.mean(axis=0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(scale, np.maximum(rows.std(axis=0), 1e-3), rtol=1e-5)
+
+    model, variables = features_denoiser(standardize=True, cell_context=True)
+    params = {**variables["params"], "frozen_feature_mean": jnp.asarray(mean),
+              "frozen_feature_scale": jnp.asarray(scale)}
+    plain = Denoiser(dataclasses.replace(model.config, standardize=False))
+    plain_params = {k: v for k, v in params.items() if not k.startswith("frozen_feature")}
+    x = jax.random.normal(jax.random.PRNGKey(1), (2, 16, 16, 8))
+    x = x.at[..., 0].set(jax.random.randint(jax.random.PRNGKey(2), (2, 16, 16), 0, 19))
+    feats = jax.random.normal(jax.random.PRNGKey(3), (2, FEATURE_TOKENS, 384))
+    feats = feats.at[0, 20:].set(0.0).at[1, 9:].set(0.0)
+    t = jnp.array([3, 70])
+    by_hand = np.where(np.any(np.asarray(feats) != 0, -1, keepdims=True),
+                       (np.asarray(feats) - mean) / scale, 0.0).astype(np.float32)
+    plain_params["frozen_cell_features"] = (params["frozen_cell_features"] - mean) / scale
+    np.testing.assert_allclose(
+        np.asarray(model.apply({"params": params}, x, t, feats)),
+        np.asarray(plain.apply({"params": plain_params}, x, t, jnp.asarray(by_hand))),
+        atol=2e-4)
+    names = fixed_text_params(dataclasses.replace(model.config, cell_context=False),
+                              grammar.CELL_TOKENS, lambda: pytest.fail("encoder not needed"),
+                              lambda: table)
+    assert set(names) == {"frozen_feature_mean", "frozen_feature_scale"}
+    assert fixed_text_params(dataclasses.replace(model.config, standardize=False,
+                                                 cell_context=False), (), None, None) is None
+
+
 def test_planner_takes_features_once_and_refuses_the_wrong_input():
     """Planner.init keeps the text context the UNet cross-attends to (computed once per
     episode); a denoiser call on it equals one on the features themselves."""

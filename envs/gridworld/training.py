@@ -477,11 +477,13 @@ class Recipe:
     def fixed_params(self, model_config) -> dict | None:
         """The model's constants written before training: for a denoiser that embeds cells by
         their names (``DenoiserConfig.cell_context``), the encoder's features of the cell
-        tokens' names (``diffplan.instruction.fixed_cell_params``); else None."""
-        from diffplan.instruction import fixed_cell_params
+        tokens' names, and with ``standardize`` the training sentences' feature statistics
+        (``diffplan.instruction.fixed_text_params``); else None."""
+        from diffplan.instruction import fixed_text_params
         from envs.gridworld.sentences import instruction_encoder
 
-        return fixed_cell_params(model_config, grammar.CELL_TOKENS, instruction_encoder)
+        return fixed_text_params(model_config, grammar.CELL_TOKENS, instruction_encoder,
+                                 self.sentences)
 
     def text_metadata(self) -> dict:
         """What a checkpoint records of its instruction input: the vocabulary its token ids

@@ -278,10 +278,12 @@ class Recipe:
     def fixed_params(self, model_config) -> dict | None:
         """The model's constants written before training: for a denoiser that embeds cells by
         their names (``DenoiserConfig.cell_context``), the encoder's features of the block
-        colours' names (``diffplan.instruction.fixed_cell_params``); else None."""
-        from diffplan.instruction import fixed_cell_params
+        colours' names, and with ``standardize`` the training sentences' feature statistics
+        (``diffplan.instruction.fixed_text_params``); else None."""
+        from diffplan.instruction import fixed_text_params
 
-        return fixed_cell_params(model_config, grammar.CELL_TOKENS, instruction_encoder)
+        return fixed_text_params(model_config, grammar.CELL_TOKENS, instruction_encoder,
+                                 self.sentences)
 
     def metadata(self) -> dict:
         """What a checkpoint records of the recipe (compared when resuming): with text
