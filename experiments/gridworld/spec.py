@@ -129,7 +129,7 @@ class ExperimentSpec:
             from envs.gridworld.sentences import FEATURE_TOKENS, instruction_encoder
             words = dict(vocab_size=len(grammar.CELL_TOKENS), max_tokens=FEATURE_TOKENS,
                          context_dim=instruction_encoder().dim,
-                         cell_context=self.grid_repr == "embed", standardize=True)
+                         cell_context=self.grid_repr == "embed")
         else:
             words = dict(vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS)
         return recipes.denoiser_config(size, num_cond_channels=NUM_COND_CHANNELS,
