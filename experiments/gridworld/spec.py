@@ -128,8 +128,7 @@ class ExperimentSpec:
         if self.text == "pretrained":
             from envs.gridworld.sentences import FEATURE_TOKENS, instruction_encoder
             words = dict(vocab_size=len(grammar.CELL_TOKENS), max_tokens=FEATURE_TOKENS,
-                         context_dim=instruction_encoder().dim,
-                         cell_context=self.grid_repr == "embed")
+                         context_dim=instruction_encoder().dim)
         else:
             words = dict(vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS)
         return recipes.denoiser_config(size, num_cond_channels=NUM_COND_CHANNELS,

@@ -21,11 +21,12 @@ MODEL_SIZES = {
 
 def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_channels: int,
                     num_gen_channels: int, grid_repr: str = "embed", context_dim: int = 0,
-                    cell_context: bool = False, standardize: bool | None = None):
+                    cell_context: bool | None = None, standardize: bool | None = None):
     """The DenoiserConfig of a model size on a world's planning tensor and vocabulary (or,
     with context_dim D > 0, a frozen pretrained text encoder's D-wide token features:
-    vocab_size then counts the world's cell tokens only; standardize, default with features,
-    standardises them with the training sentences' statistics)."""
+    vocab_size then counts the world's cell tokens only). With features, by default, the
+    cells are embedded by their names' features (cell_context, with grid_repr "embed") and
+    the features standardised with the training sentences' statistics (standardize)."""
     from diffplan.denoiser import DenoiserConfig
 
     if size not in MODEL_SIZES:
@@ -33,7 +34,9 @@ def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_cha
     return DenoiserConfig(vocab_size=vocab_size, max_tokens=max_tokens,
                           num_cond_channels=num_cond_channels,
                           num_gen_channels=num_gen_channels, grid_repr=grid_repr,
-                          context_dim=context_dim, cell_context=cell_context,
+                          context_dim=context_dim, cell_context=(
+                              bool(context_dim) and grid_repr == "embed"
+                              if cell_context is None else cell_context),
                           standardize=bool(context_dim) if standardize is None else standardize,
                           **MODEL_SIZES[size])
 

@@ -101,7 +101,7 @@ def model_config(size: str = "default", text: str = "tokens"):
         from envs.kuka.sentences import FEATURE_TOKENS, instruction_encoder
 
         words = dict(vocab_size=len(grammar.CELL_TOKENS), max_tokens=FEATURE_TOKENS,
-                     context_dim=instruction_encoder().dim, cell_context=True)
+                     context_dim=instruction_encoder().dim)
     else:
         words = dict(vocab_size=len(grammar.VOCAB), max_tokens=grammar.MAX_TOKENS)
     return recipes.denoiser_config(size, num_cond_channels=NUM_COND_CHANNELS,
