@@ -515,7 +515,8 @@ def train(model, model_config, train_config: TrainConfig, batch_fn: Callable, ou
         def validate(state):
             return {"val_loss": float(val_loss(state.ema_params, sentences))}
 
-    result = fit(step, lambda: init_train_state(model, cfg, init_batch, fixed=fixed_params), steps=cfg.steps,
+    init = functools.partial(init_train_state, model, cfg, init_batch, fixed=fixed_params)
+    result = fit(step, init, steps=cfg.steps,
                  seed=cfg.seed, out_dir=out_dir, metadata=metadata, data=sentences,
                  checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every,
                  progress=progress, jit=False, mesh=mesh, summarize=_denoiser_summary,
