@@ -188,3 +188,88 @@ def test_the_batched_route_search_equals_the_per_map_one(layouts):
     assert np.isinf(batched[0]).all() and np.isfinite(batched[1]).any()
     shared = np.asarray(jax.vmap(navigate.cost_to_go, in_axes=(None, 0))(enter[1], start))
     np.testing.assert_array_equal(shared[1], batched[1])
+
+
+def _reachable_np(blocked, pos):
+    """Plain-numpy oracle of task.reachable: breadth-first search from pos over cells not
+    blocked; a blocked cell counts when a reached cell is beside it."""
+    h, w = blocked.shape
+    reached = np.zeros((h, w), bool)
+    reached[tuple(pos)] = True
+    frontier = [tuple(pos)]
+    while frontier:
+        r, c = frontier.pop()
+        for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+            rr, cc = r + dr, c + dc
+            if 0 <= rr < h and 0 <= cc < w and not blocked[rr, cc] and not reached[rr, cc]:
+                reached[rr, cc] = True
+                frontier.append((rr, cc))
+    beside = np.zeros((h, w), bool)
+    for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+        shifted = np.zeros((h, w), bool)
+        shifted[max(dr, 0):h + min(dr, 0), max(dc, 0):w + min(dc, 0)] = \
+            reached[max(-dr, 0):h + min(-dr, 0), max(-dc, 0):w + min(-dc, 0)]
+        beside |= shifted
+    return reached | beside
+
+
+def test_reachable_equals_a_breadth_first_search_on_random_maps(layouts):
+    from envs.babyai.task import known_blocked, reachable
+
+    task_state = BabyAITask(make_config("goto")).reset(
+        jax.tree.map(lambda x: x[0], layouts["goto"]))
+    rng = np.random.default_rng(0)
+    fn = jax.jit(reachable)
+    for trial in range(12):
+        kinds = rng.choice([O.UNSEEN, O.EMPTY, O.WALL, O.BALL], size=(22, 22),
+                           p=[0.3, 0.3, 0.3, 0.1])
+        known = np.zeros((22, 22, 3), np.uint8)
+        known[..., 0] = kinds
+        pos = rng.integers(0, 22, size=2)
+        known[pos[0], pos[1]] = O.EMPTY_CELL
+        state = task_state.replace(known=jnp.asarray(known), pos=jnp.asarray(pos, jnp.int32))
+        blocked = np.asarray(known_blocked(jnp.asarray(known)))
+        np.testing.assert_array_equal(np.asarray(fn(state)), _reachable_np(blocked, pos),
+                                      err_msg=f"trial {trial}")
+
+
+def test_psi_heads_for_the_best_cell_it_can_reach(layouts):
+    """An unseen cell walled in on the agent's map can never be faced: the goal estimate skips
+    it for the best reachable candidate, and falls back to it only when nothing is reachable
+    (before, the agent turned on the spot until the episode ran out)."""
+    from envs.babyai.task import goal_estimate
+
+    task = BabyAITask(make_config("goto_local"))
+    state = task.reset(jax.tree.map(lambda x: x[0], layouts["goto_local"]))
+    known = np.zeros((8, 8, 3), np.uint8)
+    known[...] = O.EMPTY_CELL
+    known[0, :], known[-1, :], known[:, 0], known[:, -1] = (O.WALL_CELL,) * 4
+    known[2, 2] = (O.UNSEEN, 0, 0)                       # walled in below
+    known[1, 2] = known[3, 2] = known[2, 1] = known[2, 3] = O.WALL_CELL
+    known[5, 5] = (O.BALL, 0, 0)
+    state = state.replace(known=jnp.asarray(known), pos=jnp.asarray([6, 1], jnp.int32),
+                          ruled_out=jnp.zeros((8, 8), bool))
+    plan = -np.ones((8, 8, 3), np.float32)
+    plan[2, 2, GOAL], plan[5, 5, GOAL] = 1.0, 0.5
+    assert tuple(np.asarray(goal_estimate(state, jnp.asarray(plan)))) == (5, 5)
+    walled = known.copy()
+    walled[5, 5] = O.EMPTY_CELL                          # no reachable candidate left
+    state = state.replace(known=jnp.asarray(walled))
+    assert tuple(np.asarray(goal_estimate(state, jnp.asarray(plan)))) == (2, 2)
+
+
+def test_new_information_ignores_faced_floor_but_not_a_ruled_out_object(layouts):
+    task = BabyAITask(make_config("goto_local"))
+    state = task.reset(jax.tree.map(lambda x: x[0], layouts["goto_local"]))
+    empty = [tuple(c) for c in np.argwhere(np.asarray(state.known)[..., 0] == O.EMPTY)]
+    floor, ball = empty[0], empty[1]
+    state = state.replace(known=state.known.at[ball].set(jnp.asarray((O.BALL, 0, 0), jnp.uint8)))
+    cond = task.condition(state)
+    rule_out = lambda cell: task.condition(  # noqa: E731
+        state.replace(ruled_out=state.ruled_out.at[cell].set(True)))
+    assert not bool(task.new_information(cond, cond))
+    assert not bool(task.new_information(cond, rule_out(floor)))
+    assert bool(task.new_information(cond, rule_out(ball)))
+    seen = task.condition(state.replace(known=state.known.at[floor].set(
+        jnp.asarray(O.WALL_CELL, jnp.uint8))))
+    assert bool(task.new_information(cond, seen))

@@ -25,7 +25,8 @@ source). The agent's pose is its own: minigrid places it, and its cell and headi
 its actions and the cell in front, which it always sees.
 
 psi (:func:`psi`): the goal estimate is the goal channel's argmax among cells that may hold an
-object (unseen, or seen holding a key, ball or box, and not ruled out); the stand cells are its
+object (unseen, or seen holding a key, ball or box, and not ruled out) and that the agent can
+reach on its map (:func:`reachable`; all of them if it can reach none); the stand cells are its
 4-neighbours not known to be blocked. A least-cost route over the cells not known to be blocked
 (unseen cells assumed free; a closed door costs a toggle more; a cell the plan's path marks
 costs less, ``path_weight``; a stand cell the plan's sub-goal marks is preferred,
@@ -53,6 +54,8 @@ NUM_GEN_CHANNELS = 3
 PATH, GOAL, SUBGOAL = range(NUM_GEN_CHANNELS)
 """The generated channels' indices within a plan (H, W, G)."""
 REFUTED_PLAN_COST = 1e4
+FIRST_OBJECT_KIND = 21
+"""Kinds FIRST_OBJECT_KIND .. NUM_KINDS - 1 are the keys, balls and boxes (:func:`_kind_table`)."""
 
 
 def _kind_table() -> np.ndarray:
@@ -63,7 +66,7 @@ def _kind_table() -> np.ndarray:
         for state in (O.OPEN, O.CLOSED, O.LOCKED):
             table[O.DOOR, color, state] = 3 + 3 * color + state
         for i, kind in enumerate((O.KEY, O.BALL, O.BOX)):
-            table[kind, color, :] = 21 + 6 * i + color
+            table[kind, color, :] = FIRST_OBJECT_KIND + 6 * i + color
     return table
 
 
@@ -128,10 +131,25 @@ def _argmax_cell(values, allowed):
     return jnp.stack([flat // w, flat % w]).astype(jnp.int32)
 
 
+def reachable(state: env.State):
+    """bool (H, W): cells the agent can walk to or stand beside on its map: a route from its
+    cell over cells not known to be blocked (unseen cells assumed free, closed doors passable)
+    ends on the cell or on a 4-neighbour of it."""
+    blocked = known_blocked(state.known)
+    enter = jnp.where(blocked, jnp.inf, 1.0)
+    start = jnp.full(blocked.shape, jnp.inf).at[state.pos[0], state.pos[1]].set(0.0)
+    return jnp.isfinite(navigate.cost_to_go(enter, start))
+
+
 def goal_estimate(state: env.State, plan):
     """int32 (2,): the cell psi heads for the object of (plan float32 (H, W, G) cropped to the
-    level's grid): the goal channel's argmax among :func:`may_hold_object` cells."""
-    return _argmax_cell(plan[..., GOAL], may_hold_object(state))
+    level's grid): the goal channel's argmax among :func:`may_hold_object` cells the agent can
+    reach (:func:`reachable`), or among all of them when it can reach none (an unseen cell
+    walled in on the agent's map, e.g. inside a wall it has seen around, can never be faced:
+    heading for it would leave the agent turning on the spot)."""
+    candidates = may_hold_object(state)
+    within = candidates & reachable(state)
+    return _argmax_cell(plan[..., GOAL], jnp.where(jnp.any(within), within, candidates))
 
 
 def _route_field(state: env.State, plan, path_weight: float, subgoal_weight: float):
@@ -234,10 +252,13 @@ class BabyAITask:
         return jnp.abs(cell - state.pos).sum() == 1
 
     def new_information(self, old_condition, condition_now):
-        """bool (): a cell looks different (newly seen, a door toggled) or was ruled out."""
-        return (jnp.any(old_condition[..., ID_CHANNEL] != condition_now[..., ID_CHANNEL])
-                | jnp.any(old_condition[..., RULED_OUT_CHANNEL]
-                          != condition_now[..., RULED_OUT_CHANNEL]))
+        """bool (): a cell looks different (newly seen, a door toggled) or an object was ruled
+        out (facing an empty cell or a wall tells nothing new: neither could hold the object)."""
+        ids = old_condition[..., ID_CHANNEL]
+        an_object = ids - self.cell_id_base >= FIRST_OBJECT_KIND
+        return (jnp.any(ids != condition_now[..., ID_CHANNEL])
+                | jnp.any(an_object & (old_condition[..., RULED_OUT_CHANNEL]
+                                       != condition_now[..., RULED_OUT_CHANNEL])))
 
     def plan_refuted(self, state: env.State, plan):
         """bool (): the plan marks no cell that may still hold the object (its goal value is
