@@ -20,6 +20,12 @@ SHIPPED = {
     "goto_local": dict(episodes=64, measured={"ours, warm start": 100.0, "BC": 26.5625,
                                               "random weights, warm start": 98.4375},
                        steps_ratio=2.5, reward_gap=0.15),
+    # `python -m experiments.babyai --level goto --episodes 32 --seed 1777 --modes warm_start
+    # --no-bot --random-weights`: 32, 2 and 31 of 32; mean reward: ours 0.834, random weights
+    # 0.612; actions 106.4 and 246.0.
+    "goto": dict(episodes=32, measured={"ours, warm start": 100.0, "BC": 6.25,
+                                        "random weights, warm start": 96.875},
+                 steps_ratio=2.0, reward_gap=0.15),
 }
 """Per level: the episodes of seed 1777 and the SR of each row on them when shipped, and how
 far ahead of the random-weights control ours must stay (fewer actions by at least
@@ -63,10 +69,10 @@ def test_ours_and_bc_perform_as_measured_in_minigrid(shipped):
 
 
 def test_what_the_learned_denoiser_adds_over_random_weights(shipped):
-    """The same planner, triggers and psi with random weights: in GoToLocal's one 6 x 6 room,
-    walking the known map to random goals faces the named object within 64 actions almost
-    always, so what the learned denoiser adds there is the short walk (over three times fewer
-    actions, a far higher reward); in GoTo's nine rooms it adds the success itself."""
+    """The same planner, triggers and psi with random weights: walking the known map to random
+    goals faces the named object before the step limit almost always (GoToLocal's one room,
+    64 actions; GoTo's nine rooms, 576), so what the learned denoiser adds is the short walk
+    (about 3 and 2.3 times fewer actions here, a far higher reward)."""
     _, expected, result = shipped
     rows = {row["method"]: row for row in result["rows"]}
     ours, control = rows["ours, warm start"], rows["random weights, warm start"]

@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "(envs/babyai/seeds.py)")
     p.add_argument("--json", metavar="PATH", help="write the results (contract 2) as JSON")
     cli.add_training_flags(p, training_name="babyai_<level>", served="its level",
-                           train_steps="the level's: 4000 GoToLocal, 1900 the maze levels",
+                           train_steps="the level's: 4000 GoToLocal, 1900 GoToObjMaze, 5400 GoTo",
                            checkpoint_every=250, model_sizes=MODEL_SIZES)
     p.add_argument("--demos", type=int, default=None, metavar="N",
                    help="training episodes (minigrid layouts with the expert's demonstration) "
@@ -51,8 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "converged or once it has used our denoiser's training minutes")
     p.add_argument("--bc-checkpoint", metavar="DIR",
                    help="BC to evaluate (default: the denoiser's directory + '_bc')")
-    p.add_argument("--modes", default=",".join(MODES),
-                   help=f"our planning modes, comma-separated (default {','.join(MODES)})")
+    p.add_argument("--modes", default=None,
+                   help=f"our planning modes, comma-separated, of {','.join(MODES)} (default the "
+                        "level's: both for GoToLocal; warm_start for the maze levels, where "
+                        "1000 on-the-fly episodes take about 27 min on 2 cores)")
     p.add_argument("--num-steps", type=int, default=None,
                    help="denoising steps of an on-the-fly plan (default: the level's, 10 "
                         "GoToLocal, 5 the maze levels)")
@@ -131,6 +133,8 @@ def check_args(parser, args):
     cli.check_output_file(parser, "--figure", args.figure, suffix=".png")
     for flag, path in (("--train-dir", args.train_dir), ("--sweep-dir", args.sweep_dir)):
         cli.check_output_dir(parser, flag, path)
+    if args.modes is None:
+        args.modes = ",".join(spec.modes)
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     if not modes or any(m not in MODES for m in modes) or len(set(modes)) != len(modes):
         parser.error(f"--modes must be distinct names of {','.join(MODES)}, got {args.modes!r}")

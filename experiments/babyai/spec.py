@@ -2,11 +2,12 @@
 the level's cached minigrid layouts, the planning modes, where its checkpoints live, and the
 published imitation-learning numbers it is shown beside (:data:`PUBLISHED`).
 
-Training budget (issue 54: each level's default training <= 60 min on this 2-core CPU),
-measured with short runs of ``--train`` while other jobs held a load of 11-13 (docs/results.md,
-BabyAI): GoToLocal (8 x 8), default model, batch 64: 1.25 steps/s (0.28 CPU-seconds a step);
-GoTo (22 x 22, planned 24 x 24), batch 32: 0.55 steps/s (0.61 CPU-s a step; the 'small'
-widths barely cheaper, 0.52). The defaults below fit 60 minutes at those rates.
+Training budget (each level's default training <= 60 min on this 2-core CPU): first measured
+with short runs of ``--train`` while other jobs held a load of 11-13: GoToLocal (8 x 8),
+default model, batch 64: 1.25 steps/s (0.28 CPU-seconds a step); GoTo (22 x 22, planned
+24 x 24), batch 32: 0.55 steps/s (0.61 CPU-s a step; the 'small' widths barely cheaper, 0.52).
+Without that load the shipped runs went faster: GoToLocal 4000 steps in 14.5 min, GoTo 5400
+steps in 43 min (docs/results.md, BabyAI).
 """
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ different or the agent stands beside the plan's goal (the grid world's cheap def
 class LevelSpec:
     """One level's experiment: training (steps of batch_size, demos training layouts, the
     recipe's detours), the model and the planner's step counts (on-the-fly: num_steps per
-    plan), the evaluation's slots (eval_batch) and BC's step limit."""
+    plan), the evaluation's slots (eval_batch) and default planning modes, BC's step limit."""
 
     level: str
     train_steps: int
@@ -45,6 +46,7 @@ class LevelSpec:
     warm_num_steps: int = 2
     warm_start_step: int = 1
     eval_batch: int = 64
+    modes: tuple = MODES
     bc_steps: int = 30000
     checkpoint_every: int = 250
 
@@ -133,8 +135,14 @@ SPECS = {
     # takes more), a default-size call on the 24 x 24 map costs ~3 CPU-ms, so 10 steps a plan
     # would cost ~0.7 CPU-s per episode, past the 10-minute budget of 1000 (not yet chosen on
     # validation: --num-steps; docs/results.md).
-    "goto_obj_maze": LevelSpec("goto_obj_maze", train_steps=1900, batch_size=32, num_steps=5),
-    "goto": LevelSpec("goto", train_steps=1900, batch_size=32, num_steps=5),
+    # The maze levels evaluate warm start by default: on-the-fly re-plans before each of
+    # GoTo's ~145 actions (725 calls an episode), 1000 episodes took 27 min here (--modes).
+    "goto_obj_maze": LevelSpec("goto_obj_maze", train_steps=1900, batch_size=32, num_steps=5,
+                               modes=("warm_start",)),
+    # GoTo: 5400 steps of 32 took 43 min (2.1 steps/s; an evaluation shared the CPU for part
+    # of it); the first model, 1900 steps (19 min), read 94.6 warm start on validation.
+    "goto": LevelSpec("goto", train_steps=5400, batch_size=32, num_steps=5,
+                      modes=("warm_start",)),
 }
 
 
