@@ -260,20 +260,21 @@ class BabyAITask:
                 | jnp.any(an_object & (old_condition[..., RULED_OUT_CHANNEL]
                                        != condition_now[..., RULED_OUT_CHANNEL])))
 
+    def _cost_and_refuted(self, state: env.State, plan):
+        """(psi's route cost from the agent float32 (), refuted bool ()) of one search."""
+        plan = self._crop(plan)
+        field, _, _, _, cell = _route_field(state, plan, self.path_weight, self.subgoal_weight)
+        cost = field[state.pos[0], state.pos[1]]
+        return cost, (plan[cell[0], cell[1], GOAL] <= 0) | ~jnp.isfinite(cost)
+
     def plan_refuted(self, state: env.State, plan):
         """bool (): the plan marks no cell that may still hold the object (its goal value is
         <= 0 on every such cell), or psi finds no route to a cell beside its goal estimate."""
-        plan = self._crop(plan)
-        field, _, _, _, cell = _route_field(state, plan, self.path_weight, self.subgoal_weight)
-        return (plan[cell[0], cell[1], GOAL] <= 0) | ~jnp.isfinite(field[state.pos[0],
-                                                                          state.pos[1]])
+        return self._cost_and_refuted(state, plan)[1]
 
     def plan_cost(self, state: env.State, plan):
         """float32 (): psi's route cost to the plan's goal estimate (moves, toggles and the
-        plan's own weights), REFUTED_PLAN_COST for a refuted plan."""
-        field, *_ = _route_field(state, self._crop(plan), self.path_weight, self.subgoal_weight)
-        cost = field[state.pos[0], state.pos[1]]
-        refuted = self.plan_refuted(state, plan)
-        return jnp.where(refuted | ~jnp.isfinite(cost), REFUTED_PLAN_COST, cost).astype(
-            jnp.float32)
+        plan's own weights), REFUTED_PLAN_COST for a refuted plan (one route search, not two)."""
+        cost, refuted = self._cost_and_refuted(state, plan)
+        return jnp.where(refuted, REFUTED_PLAN_COST, cost).astype(jnp.float32)
 
