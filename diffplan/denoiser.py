@@ -32,6 +32,15 @@ Instruction input (``DenoiserConfig.context_dim``):
                 features and the instruction's token features, as the token model's single
                 table embeds both cells and words: a cell named like a word of the instruction
                 starts near it. ``token_embed`` (zero at init) adds a learned per-cell part.
+  ``cell_lookup`` -- with ``cell_context``: each cell also receives what the instruction says
+                about its name. Once per instruction, every cell token's name looks up the
+                instruction's tokens by the cosine of their frozen (standardised) features,
+                softmax(scale * (cos - threshold)) over the real tokens and a "not named" slot
+                of logit 0, and reads a learned projection of the text encoder's output there
+                (``lookup_value``; zero where the name is not in the instruction). The result,
+                (vocab_size, embed_dim) per instruction (:class:`TextContext` ``cells``), is
+                added to each cell's embedding: the name match the token model gets from its
+                shared table is given here at initialisation instead of learned.
 """
 from __future__ import annotations
 
@@ -56,7 +65,7 @@ __all__ = ["DenoiserConfig", "Denoiser", "make_denoise_fn", "count_params", "ini
 GRID_REPRS = ("embed", "class_id")
 _TUPLE_FIELDS = ("widths", "attn_levels", "cross_attn_levels")
 _LATER_FIELDS = {"sentence_end_id": -1, "token_classes": 0, "context_dim": 0,
-                 "cell_context": False, "standardize": False}
+                 "cell_context": False, "standardize": False, "cell_lookup": False}
 """DenoiserConfig fields newer than some checkpoints, and the default that means "absent"."""
 PREDICTIONS = ("eps", "x0")
 """What a network predicts for the generated channels: the noise, or the clean plan x0."""
@@ -105,6 +114,10 @@ class DenoiserConfig:
         ``frozen_feature_mean`` and ``frozen_feature_scale`` (D,), written before training);
         padding rows stay zero. The encoder's features are anisotropic (any two names share
         cosine 0.25), which standardising removes.
+      cell_lookup: with cell_context: every cell token's name looks up the instruction's
+        tokens whose frozen features resemble it and adds what the text encoder says there to
+        the cell's embedding (module docstring; params ``lookup_value``, ``lookup_scale``,
+        ``lookup_threshold``).
     """
 
     vocab_size: int = 64
@@ -128,6 +141,7 @@ class DenoiserConfig:
     context_dim: int = 0
     cell_context: bool = False
     standardize: bool = False
+    cell_lookup: bool = False
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -175,6 +189,11 @@ class DenoiserConfig:
         if self.cell_context and not (self.context_dim and self.grid_repr == "embed"):
             raise ValueError("cell_context embeds cells by their names' pretrained features: it "
                              "needs context_dim > 0 and grid_repr 'embed'")
+        if not isinstance(self.cell_lookup, bool):
+            raise ValueError(f"cell_lookup must be a bool, got {self.cell_lookup!r}")
+        if self.cell_lookup and not self.cell_context:
+            raise ValueError("cell_lookup looks up the cells' names in the instruction: it needs "
+                             "cell_context")
         if not isinstance(self.standardize, bool):
             raise ValueError(f"standardize must be a bool, got {self.standardize!r}")
         if self.standardize and not self.context_dim:
@@ -240,10 +259,13 @@ class TextContext(NamedTuple):
     instruction (the planner does so for a denoiser on pretrained features: the text part of
     the network then runs once per episode, not at every denoiser call).
 
-    features: float32 (..., L, text_dim); mask: bool (..., L), True at real tokens."""
+    features: float32 (..., L, text_dim); mask: bool (..., L), True at real tokens;
+    cells: None, or with ``DenoiserConfig.cell_lookup`` float32 (..., vocab_size, embed_dim),
+    what the instruction says about each cell token's name."""
 
     features: jax.Array
     mask: jax.Array
+    cells: Any = None
 
 
 class Denoiser(nn.Module):
@@ -275,6 +297,11 @@ class Denoiser(nn.Module):
                                             (cfg.vocab_size, cfg.context_dim))
             self.context_embed = FeatureProjection(cfg.embed_dim)
             project = self.context_embed
+        if cfg.cell_lookup:
+            self.lookup_value = nn.Dense(cfg.embed_dim)
+            self.lookup_scale = self.param("lookup_scale", nn.initializers.constant(20.0), ())
+            self.lookup_threshold = self.param("lookup_threshold",
+                                               nn.initializers.constant(0.7), ())
         if cfg.standardize:
             self.feature_mean = self.param("frozen_feature_mean", nn.initializers.zeros,
                                            (cfg.context_dim,))
@@ -318,11 +345,36 @@ class Denoiser(nn.Module):
 
     def encode_text(self, tokens: jax.Array) -> TextContext:
         """The instruction's :class:`TextContext` (what the UNet cross-attends to): tokens
-        (B, L) int32, or (B, L, D) features -> features (B, L, text_dim), mask (B, L)."""
-        return TextContext(*self._text(tokens))
+        (B, L) int32, or (B, L, D) features -> features (B, L, text_dim), mask (B, L), and
+        with ``cell_lookup`` cells (B, vocab_size, embed_dim)."""
+        context, mask = self._text(tokens)
+        cells = self._lookup(tokens, context, mask) if self.config.cell_lookup else None
+        return TextContext(context, mask, cells)
 
-    def encode_grid(self, x_t: jax.Array) -> jax.Array:
-        """(B, H, W, C+G) planning tensor -> (B, H, W, F) UNet input features.
+    def _lookup(self, tokens: jax.Array, context: jax.Array, mask: jax.Array) -> jax.Array:
+        """(B, vocab_size, embed_dim): for each cell token's name, the softmax over the real
+        tokens (and a "not named" slot of logit 0, value 0) of scale * (cos - threshold),
+        the cosine between the name's and each token's frozen (standardised) features,
+        weighting ``lookup_value`` of the text encoder's output ``context`` (B, L, text_dim).
+        tokens: (B, L, D) features, mask (B, L)."""
+        def unit(f):
+            f = jax.lax.stop_gradient(self._standardized(f))
+            return f / jnp.maximum(jnp.linalg.norm(f, axis=-1, keepdims=True), 1e-6)
+
+        names = unit(self.cell_features)                                  # (V, D)
+        cos = jnp.einsum("vd,bld->bvl", names, unit(tokens.astype(jnp.float32)))
+        logits = self.lookup_scale * (cos - self.lookup_threshold)
+        logits = jnp.where(mask[:, None, :], logits, -1e9)
+        logits = jnp.concatenate([logits, jnp.zeros(logits.shape[:-1] + (1,))], axis=-1)
+        weights = jax.nn.softmax(logits, axis=-1)[..., :-1]               # (B, V, L)
+        named = jnp.any(self.cell_features != 0, axis=-1)                 # padding: no name
+        weights = weights * named[None, :, None]
+        return jnp.einsum("bvl,ble->bve", weights, self.lookup_value(context))
+
+    def encode_grid(self, x_t: jax.Array, cells: jax.Array | None = None) -> jax.Array:
+        """(B, H, W, C+G) planning tensor -> (B, H, W, F) UNet input features; cells: None, or
+        (B, vocab_size, embed_dim) added to each cell's embedding by its token
+        (``cell_lookup``).
 
         "embed": F = embed_dim + (C - 1) + G; "class_id": F = C + G.
         """
@@ -336,6 +388,8 @@ class Denoiser(nn.Module):
                 named = self.context_embed(self._standardized(
                     jax.lax.stop_gradient(self.cell_features)))  # (V, E)
                 cell = cell + named[idx]
+            if cells is not None:
+                cell = cell + jax.vmap(lambda table, i: table[i])(cells, idx)
         else:
             cell = (ids / (cfg.vocab_size - 1))[..., None]
         return jnp.concatenate([cell, rest], axis=-1)
@@ -357,18 +411,21 @@ class Denoiser(nn.Module):
             if tokens.features.shape[0] != b:
                 raise ValueError(f"the text context has batch {tokens.features.shape[0]}, x_t "
                                  f"has {b}")
-            context, mask = tokens
+            context, mask, cells = tokens
+            if cfg.cell_lookup and cells is None:
+                raise ValueError("this denoiser looks up its cells' names in the instruction "
+                                 "(cell_lookup): pass encode_text's TextContext, cells included")
         else:
             want = 3 if cfg.context_dim else 2
             if tokens.ndim != want or tokens.shape[0] != b:
                 what = f"(B={b}, L, {cfg.context_dim}) pretrained features" if cfg.context_dim \
                     else f"(B={b}, L) token ids"
                 raise ValueError(f"tokens must be {what}, got shape {tokens.shape}")
-            context, mask = self._text(tokens)
+            context, mask, cells = self.encode_text(tokens)
         x_t = x_t.astype(jnp.float32)
         if self.config.token_classes and self.is_initializing():
             self.token_head(context)  # create its params with the rest
-        feats = self.encode_grid(x_t)
+        feats = self.encode_grid(x_t, cells)
         return self.unet(feats, t, context, mask)
 
 

@@ -60,6 +60,7 @@ def test_train_checkpoint_and_evaluate_in_the_natural_language(trained):
     # Its cells are embedded by their names' features, written before the first step and
     # unchanged by training (no gradient, no weight decay): the checkpoint carries them.
     assert meta["model_config"]["cell_context"] is True
+    assert meta["model_config"]["cell_lookup"] is True
     from diffplan.checkpoint import load_params_for_eval
     from envs.gridworld.sentences import cell_features
 
@@ -143,3 +144,16 @@ def test_a_training_table_longer_than_L_is_refused_in_one_line():
     assert longest > 16
     assert str(e.value) == (f"an instruction is {longest} wordpieces long, over the grid "
                             "world's L = 16")
+
+
+def test_the_features_recipe_trains_5000_steps_by_default():
+    """--text pretrained trains 5000 steps unless told (the token recipe 8000, the far
+    denoiser's 10000 either way), and --help says so."""
+    from experiments.gridworld.flags import build_parser
+    from experiments.gridworld.spec import SPECS
+
+    assert SPECS["p_mo2g"].default_train_steps("pretrained") == 5000
+    assert SPECS["p_mo2g"].default_train_steps("tokens") == 8000
+    assert SPECS["p_mo2g_far"].default_train_steps("pretrained") == 10000
+    assert "default 8000; 5000 with --text pretrained" in " ".join(
+        build_parser(SPECS["mo1g"]).format_help().split())

@@ -280,6 +280,69 @@ def test_standardized_features_equal_standardizing_by_hand(small):
                                                  cell_context=False), (), None, None) is None
 
 
+def test_cell_lookup_equals_a_numpy_oracle_and_finds_the_named_token():
+    """cell_lookup: each cell token's name looks up the instruction's tokens by the cosine of
+    their standardised frozen features, softmax(scale * (cos - threshold)) beside a "not
+    named" slot of logit 0, and reads lookup_value of the text encoder's output there (plain
+    numpy below); a cell's embedding gains its name's row. A token carrying a name's own
+    features takes most of that name's weight at initialisation; padding, an unnamed cell
+    token (row 0) and the planner's precomputed context change nothing."""
+    from diffplan.denoiser import Denoiser, DenoiserConfig
+
+    model, variables = features_denoiser(cell_context=True, standardize=True, cell_lookup=True)
+    rng = np.random.default_rng(0)
+    names = rng.normal(size=(len(grammar.CELL_TOKENS), 384)).astype(np.float32)
+    names[0] = 0.0
+    mean = rng.normal(size=384).astype(np.float32) * 0.1
+    scale = rng.uniform(0.5, 2.0, size=384).astype(np.float32)
+    params = {**variables["params"], "frozen_cell_features": jnp.asarray(names),
+              "frozen_feature_mean": jnp.asarray(mean),
+              "frozen_feature_scale": jnp.asarray(scale),
+              "lookup_scale": jnp.asarray(20.0), "lookup_threshold": jnp.asarray(0.7)}
+    feats = rng.normal(size=(2, FEATURE_TOKENS, 384)).astype(np.float32)
+    feats[0, 3] = names[6] + 0.05 * rng.normal(size=384)  # "banana", almost as it is alone
+    feats[0, 12:] = 0.0
+    feats[1, 9:] = 0.0
+    ctx = model.apply({"params": params}, jnp.asarray(feats), method=Denoiser.encode_text)
+    assert ctx.cells.shape == (2, len(grammar.CELL_TOKENS), model.config.embed_dim)
+
+    def unit(f):
+        f = np.where(np.any(f != 0, -1, keepdims=True), (f - mean) / scale, 0.0)
+        return f / np.maximum(np.linalg.norm(f, axis=-1, keepdims=True), 1e-6)
+
+    real = np.any(feats != 0, -1)
+    logits = 20.0 * (np.einsum("vd,bld->bvl", unit(names), unit(feats)) - 0.7)
+    logits = np.where(real[:, None], logits, -np.inf)
+    full = np.concatenate([logits, np.zeros(logits.shape[:-1] + (1,))], -1)
+    weights = np.exp(full - full.max(-1, keepdims=True))
+    weights = (weights / weights.sum(-1, keepdims=True))[..., :-1]
+    weights[:, 0] = 0.0
+    dense = params["lookup_value"]
+    values = np.asarray(ctx.features) @ np.asarray(dense["kernel"]) + np.asarray(dense["bias"])
+    np.testing.assert_allclose(np.asarray(ctx.cells), np.einsum("bvl,ble->bve", weights, values),
+                               atol=2e-4)
+    assert weights[0, 6, 3] > 0.9 and weights[0, 6].sum() < 0.999  # found; the rest is small
+    np.testing.assert_array_equal(np.asarray(ctx.cells[:, 0]), 0.0)
+
+    x = jax.random.normal(jax.random.PRNGKey(1), (2, 16, 16, 8))
+    x = x.at[..., 0].set(jax.random.randint(jax.random.PRNGKey(2), (2, 16, 16), 0, 19))
+    base = model.apply({"params": params}, x, method=Denoiser.encode_grid)
+    looked = model.apply({"params": params}, x, ctx.cells, method=Denoiser.encode_grid)
+    idx = np.asarray(x[..., 0]).astype(int)
+    e = model.config.embed_dim
+    np.testing.assert_allclose(np.asarray(looked - base)[..., :e],
+                               np.asarray(ctx.cells)[np.arange(2)[:, None, None], idx],
+                               atol=1e-5)
+    t = jnp.array([3, 70])
+    np.testing.assert_allclose(np.asarray(model.apply({"params": params}, x, t, ctx)),
+                               np.asarray(model.apply({"params": params}, x, t,
+                                                      jnp.asarray(feats))), atol=1e-5)
+    with pytest.raises(ValueError, match="cells included"):
+        model.apply({"params": params}, x, t, ctx._replace(cells=None))
+    with pytest.raises(ValueError, match="cell_lookup"):
+        DenoiserConfig(vocab_size=19, context_dim=384, cell_lookup=True)
+
+
 def test_planner_takes_features_once_and_refuses_the_wrong_input():
     """Planner.init keeps the text context the UNet cross-attends to (computed once per
     episode); a denoiser call on it equals one on the features themselves."""

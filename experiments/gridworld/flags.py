@@ -28,7 +28,9 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     served = ("all three paper settings" if spec.checkpoint_name == TRAINING_NAME
               else f"{spec.setting} (and the paper settings it also trained on)")
     cli.add_training_flags(p, training_name=spec.checkpoint_name, served=served,
-                           train_steps=spec.train_steps, checkpoint_every=500,
+                           train_steps=spec.train_steps if spec.pretrained_train_steps is None
+                           else f"{spec.train_steps}; {spec.pretrained_train_steps} with --text "
+                                "pretrained", checkpoint_every=500,
                            model_sizes=MODEL_SIZES)
     p.add_argument("--prediction", choices=("eps", "x0"), default=None,
                    help="network target of --train: the noise (the paper) or the clean plan "
@@ -166,7 +168,8 @@ def check_args(parser, args, spec):
     cli.check_output_dir(parser, "--figures", args.figures)
     cli.check_output_dir(parser, "--train-dir", args.train_dir)
     cli.check_output_dir(parser, "--profile", args.profile)
-    args.train_steps = spec.train_steps if args.train_steps is None else args.train_steps
+    if args.train_steps is None:
+        args.train_steps = spec.default_train_steps(args.text)
     args.train_seed = 0 if args.train_seed is None else args.train_seed
     args.checkpoint_every = 500 if args.checkpoint_every is None else args.checkpoint_every
     args.prediction = spec.prediction if args.prediction is None else args.prediction

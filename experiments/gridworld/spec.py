@@ -70,6 +70,11 @@ class ExperimentSpec:
     # 1000 validation episodes their SR_ordered stays below this one's 100.0: 3000 steps (14.4
     # min) 99.3 on-the-fly / 99.6 warm start, 4000 steps (18.8 min) 99.6 / 99.8.
     train_steps: int = 8000
+    # With --text pretrained (None: train_steps): 5000 steps, chosen on validation seed 1000
+    # (a 1500-step run with the cells' name look-up, DenoiserConfig.cell_lookup, already read
+    # SR 100.0 / ordered 96.0 on 100 P-MO2G episodes; docs/results.md), so that the features
+    # model trains in about the token model's minutes (its text part makes each step slower).
+    pretrained_train_steps: int | None = 5000
     num_train_timesteps: int = 100
     batch_size: int = 64
     lr: float = 1e-3
@@ -146,11 +151,17 @@ class ExperimentSpec:
                      checkpoint_every: int = CHECKPOINT_EVERY, objective: str = "diffusion"):
         from envs.gridworld.task import NUM_GEN_CHANNELS
         return recipes.train_config(
-            seed=seed, steps=self.train_steps if steps is None else steps,
+            seed=seed, steps=self.default_train_steps(self.text) if steps is None else steps,
             batch_size=self.batch_size, lr=self.lr, warmup_steps=self.warmup_steps,
             num_gen_channels=NUM_GEN_CHANNELS, prediction=self.prediction,
             checkpoint_every=checkpoint_every, max_log_every=100,
             num_train_timesteps=self.num_train_timesteps, objective=objective)
+
+    def default_train_steps(self, text: str = "tokens") -> int:
+        """--train's steps by default for the instruction input ``text``."""
+        if text == "pretrained" and self.pretrained_train_steps is not None:
+            return self.pretrained_train_steps
+        return self.train_steps
 
     def replan_of(self, mode: str) -> str:
         """The re-planning trigger of a mode's row: self.replan if set, else the mode's own
@@ -204,7 +215,7 @@ SPECS = {
     "p_mo2g_far": ExperimentSpec(
         "p_mo2g_far", checkpoint_name=FAR_TRAINING_NAME, later_leg_value=0.5,
         mixture=(("p_mo2g", 14), ("p_mo2g_far", 8), ("mo1g", 6), ("1o1g", 4)),
-        num_train_timesteps=10, train_steps=10000, batch_size=32),
+        num_train_timesteps=10, train_steps=10000, pretrained_train_steps=None, batch_size=32),
 }
 
 

@@ -129,11 +129,12 @@ def atomic_file(path: str, write) -> None:
 
 
 def add_training_flags(parser: argparse.ArgumentParser, *, training_name: str, served: str,
-                       train_steps: int, checkpoint_every: int, model_sizes) -> None:
+                       train_steps: int | str, checkpoint_every: int, model_sizes) -> None:
     """The flags of an experiment's ``--checkpoint`` / ``--train``: --checkpoint, --train,
     --train-dir, --train-steps, --train-seed, --checkpoint-every, --model-size (defaults None:
     :func:`only_with` tells which were given without --train). training_name: the shipped
-    checkpoints/<name> and runs/<name>; served: what the one denoiser serves (for --help)."""
+    checkpoints/<name> and runs/<name>; served: what the one denoiser serves (for --help);
+    train_steps: the default steps as --help states them."""
     parser.add_argument("--checkpoint", metavar="DIR",
                         help=f"evaluate this checkpoint (default: the shipped "
                              f"checkpoints/{training_name}, or the --train output)")

@@ -21,22 +21,25 @@ MODEL_SIZES = {
 
 def denoiser_config(size: str, *, vocab_size: int, max_tokens: int, num_cond_channels: int,
                     num_gen_channels: int, grid_repr: str = "embed", context_dim: int = 0,
-                    cell_context: bool | None = None, standardize: bool | None = None):
+                    cell_context: bool | None = None, standardize: bool | None = None,
+                    cell_lookup: bool | None = None):
     """The DenoiserConfig of a model size on a world's planning tensor and vocabulary (or,
     with context_dim D > 0, a frozen pretrained text encoder's D-wide token features:
     vocab_size then counts the world's cell tokens only). With features, by default, the
     cells are embedded by their names' features (cell_context, with grid_repr "embed") and
-    the features standardised with the training sentences' statistics (standardize)."""
+    the features standardised with the training sentences' statistics (standardize), and each
+    cell's name looked up in the instruction (cell_lookup, with cell_context)."""
     from diffplan.denoiser import DenoiserConfig
 
     if size not in MODEL_SIZES:
         raise ValueError(f"unknown model size {size!r}; expected one of {sorted(MODEL_SIZES)}")
+    if cell_context is None:
+        cell_context = bool(context_dim) and grid_repr == "embed"
     return DenoiserConfig(vocab_size=vocab_size, max_tokens=max_tokens,
                           num_cond_channels=num_cond_channels,
                           num_gen_channels=num_gen_channels, grid_repr=grid_repr,
-                          context_dim=context_dim, cell_context=(
-                              bool(context_dim) and grid_repr == "embed"
-                              if cell_context is None else cell_context),
+                          context_dim=context_dim, cell_context=cell_context,
+                          cell_lookup=cell_context if cell_lookup is None else cell_lookup,
                           standardize=bool(context_dim) if standardize is None else standardize,
                           **MODEL_SIZES[size])
 
