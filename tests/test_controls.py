@@ -68,3 +68,33 @@ def test_named_first_reads_the_order_of_first_visits():
     np.testing.assert_array_equal(controls.first_visit(positions, steps, named), [2, 2, 6])
     np.testing.assert_array_equal(controls.named_first(positions, steps, named, reference),
                                   [True, False, False])
+
+
+def test_in_mo1g_the_goal_is_named_as_a_visible_distractor():
+    """With no reference (MO1G) the names control renames the goal: one token changes, from
+    the target's name to a distractor's seen at t = 0, and the rendered text (what a features
+    denoiser reads, experiments.gridworld.controls.changed_slots) names the same object."""
+    from envs.gridworld.sentences import episode_texts
+    from experiments.gridworld.controls import changed_slots
+
+    config = make_config("mo1g")
+    eps = jax.tree.map(np.asarray, generate_batch(jax.random.PRNGKey(5), config, N))
+    visible0 = np.asarray(jax.vmap(lambda e: env.reset(e, config).seen)(eps))
+    keys = jax.random.split(jax.random.PRNGKey(9), N)
+    named, cells, valid = jax.tree.map(np.asarray, jax.vmap(functools.partial(
+        controls.name_a_distractor, setting="mo1g"))(keys, eps, visible0))
+    assert valid.sum() >= N // 2
+    slots = changed_slots("names", eps, valid, cells)
+    np.testing.assert_array_equal(slots["reference_class"], eps.reference_class)
+    texts = episode_texts(eps, "mo1g", **slots)
+    for i in np.flatnonzero(valid):
+        r, c = cells[i]
+        cls = int(eps.grid[i, r, c])
+        assert visible0[i, r, c] and cls > 0 and cls != int(eps.target_class[i])
+        changed = np.flatnonzero(named.tokens[i] != eps.tokens[i])
+        assert len(changed) == 1
+        assert grammar.VOCAB[named.tokens[i][changed[0]]] == grammar.OBJECT_NAMES[cls - 1]
+        assert grammar.OBJECT_NAMES[cls - 1] in texts[i]
+        assert grammar.OBJECT_NAMES[int(eps.target_class[i]) - 1] not in texts[i]
+    for i in np.flatnonzero(~valid):
+        np.testing.assert_array_equal(named.tokens[i], eps.tokens[i])

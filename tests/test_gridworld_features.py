@@ -157,3 +157,20 @@ def test_the_features_recipe_trains_5000_steps_by_default():
     assert SPECS["p_mo2g_far"].default_train_steps("pretrained") == 10000
     assert "default 8000; 5000 with --text pretrained" in " ".join(
         build_parser(SPECS["mo1g"]).format_help().split())
+
+
+def test_mo1g_names_control_renames_the_goal_in_the_text(trained):
+    """--control names in MO1G (no reference): a row on the episodes with a distractor in view,
+    the goal's name in the rendered sentence replaced (what a features denoiser reads), with
+    the share of them in which the agent stood on the named object before the true target."""
+    from experiments.gridworld.cli import main
+
+    train_dir, _, _ = trained
+    result = main("mo1g", ["--checkpoint", train_dir, "--episodes", "4", "--batch-size", "4",
+                           "--modes", "one_shot", "--control", "names", "--seed", "3",
+                           "--no-reference-agents", "--no-progress"])
+    rows = {row["method"]: row for row in result["rows"]}
+    control = rows["one-shot, goal named as a visible distractor (control)"]
+    assert control["control"] == "names" and 1 <= control["control_episodes"] <= 4
+    share = control["named_first_percent"] * control["control_episodes"] / 100.0
+    assert abs(share - round(share)) < 1e-6 and "one-shot" in rows  # a count of episodes

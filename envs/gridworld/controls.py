@@ -1,12 +1,13 @@
 """Language controls: the same episodes with one word of the instruction changed, so that a
 planner that reads the word must act differently and one that ignores it cannot.
 
-- ``names``: the reference's name replaced by that of a distractor the agent sees at t = 0
-  (an object that is neither the target nor the reference; drawn uniformly among them with
-  the control's key). The world is unchanged; only the tokens name another object. Measured
-  by :func:`named_first`: the agent stands on the named distractor before it stands on the
-  true reference. A planner that reads the reference's name does so in nearly every episode;
-  one that ignores it (heading for the true reference, or for any object) rarely does.
+- ``names``: the reference's name (in a setting with no reference, MO1G, the goal's)
+  replaced by that of a distractor the agent sees at t = 0 (an object that is neither the
+  target nor the reference; drawn uniformly among them with the control's key). The world is
+  unchanged; only the tokens name another object. Measured by :func:`named_first`: the agent
+  stands on the named distractor before it stands on the true reference (MO1G: the true
+  target). A planner that reads the name does so in nearly every episode; one that ignores it
+  (heading for the true object, or for any object) rarely does.
 - ``direction``: the direction word reversed (sector d -> d + 4), everything else unchanged:
   where the direction is the only clue to a hidden target (P-MO2G-far), a planner that reads
   it searches the wrong side first and its SPL drops.
@@ -39,20 +40,22 @@ def visible_distractors(episode: Episode, visible0):
 
 
 def name_a_distractor(key, episode: Episode, visible0, setting: str):
-    """(episode with the reference named as a visible distractor, the distractor's cell int32
-    (2,), valid bool ()): valid is False (and the episode unchanged) where no distractor is
-    visible at t = 0 or the setting has no reference."""
+    """(episode with the reference (no reference: the goal) named as a visible distractor, the
+    distractor's cell int32 (2,), valid bool ()): valid is False (and the episode unchanged)
+    where no distractor is visible at t = 0."""
     cells = visible_distractors(episode, visible0)
     size = cells.shape[1]
     scores = jnp.where(cells.ravel(), jax.random.uniform(key, (cells.size,)), -1.0)
     flat = jnp.argmax(scores)
     cell = jnp.stack([flat // size, flat % size]).astype(jnp.int32)
-    valid = cells.any() & (episode.reference_class > 0)
+    valid = cells.any()
     named = episode.grid[cell[0], cell[1]].astype(jnp.int32)
+    has_reference = episode.reference_class > 0
     tokens = grammar.fill_template(
         jnp.asarray(grammar.compile_templates(setting))[grammar.token_template(
-            episode.template)], named,
-        episode.target_class, jnp.maximum(episode.direction, 0)).astype(episode.tokens.dtype)
+            episode.template)], jnp.where(has_reference, named, episode.reference_class),
+        jnp.where(has_reference, episode.target_class, named),
+        jnp.maximum(episode.direction, 0)).astype(episode.tokens.dtype)
     tokens = jnp.where(valid, tokens, episode.tokens)
     return episode.replace(tokens=tokens), cell, valid
 
@@ -81,7 +84,8 @@ def first_visit(positions: np.ndarray, steps: np.ndarray, cells: np.ndarray) -> 
 
 def named_first(positions, steps, named, reference) -> np.ndarray:
     """bool (N,): the agent stood on the named cell before it stood on the true reference
-    (or stood on the named cell and never on the reference)."""
+    (or stood on the named cell and never on the reference); for the goal's name (MO1G) pass
+    the true target as ``reference``."""
     t_named = first_visit(positions, steps, named)
     t_reference = first_visit(positions, steps, reference)
     return (t_named < np.asarray(positions).shape[1]) & (t_named < t_reference)

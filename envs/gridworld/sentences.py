@@ -35,25 +35,28 @@ KINDS = (True, False)
 and without (1O1G, MO1G)."""
 
 
-def episode_texts(episodes, setting: str, reference_class=None, direction=None) -> list[str]:
+def episode_texts(episodes, setting: str, reference_class=None, direction=None,
+                  target_class=None) -> list[str]:
     """Each episode's instruction as text (numpy or jax Episode batch, leading axis N), rendered
-    from its phrasing (:func:`grammar.render`). reference_class / direction int (N,): slots to
-    write instead of the episode's own (the language controls)."""
+    from its phrasing (:func:`grammar.render`). reference_class / direction / target_class
+    int (N,): slots to write instead of the episode's own (the language controls)."""
     template = np.asarray(episodes.template).reshape(-1)
     ref = np.asarray(episodes.reference_class if reference_class is None
                      else reference_class).reshape(-1)
     dirs = np.asarray(episodes.direction if direction is None else direction).reshape(-1)
-    target = np.asarray(episodes.target_class).reshape(-1)
+    target = np.asarray(episodes.target_class if target_class is None
+                        else target_class).reshape(-1)
     return [grammar.render(setting, int(t), int(r), int(g), int(d))
             for t, r, g, d in zip(template, ref, target, dirs)]
 
 
-def with_features(episodes, setting: str, encoder, reference_class=None, direction=None):
+def with_features(episodes, setting: str, encoder, reference_class=None, direction=None,
+                  target_class=None):
     """The episodes with ``features`` float32 (N, L, D): their instructions
     (:func:`episode_texts`) encoded by ``encoder`` (a ``diffplan.instruction.
     InstructionEncoder``), each distinct sentence once (and read from the disk cache when the
     same sentences were encoded before)."""
-    texts = episode_texts(episodes, setting, reference_class, direction)
+    texts = episode_texts(episodes, setting, reference_class, direction, target_class)
     distinct = dict.fromkeys(s for text in texts for s in split_sentences(text))
     encoder.table(list(distinct))  # encodes what is new, through the disk cache
     return episodes.replace(features=encoder.encode(texts))

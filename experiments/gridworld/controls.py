@@ -2,9 +2,10 @@
 run on the same seeded episodes with one word of the instruction changed, beside the normal
 rows, measured on what the agent executed.
 
-``names`` (settings with a reference): the reference named as a distractor visible at t = 0;
-the row counts only episodes with one (``control_episodes``) and adds ``named_first_percent``,
-the share in which the agent stood on the named distractor before the true reference.
+``names``: the reference (a setting with no reference, MO1G: the goal) named as a distractor
+visible at t = 0; the row counts only episodes with one (``control_episodes``) and adds
+``named_first_percent``, the share in which the agent stood on the named distractor before the
+true reference (MO1G: before the true target).
 ``direction``: the direction word reversed; the row's metrics (SR, SPL) are the measure.
 """
 from __future__ import annotations
@@ -16,6 +17,8 @@ import numpy as np
 
 CONTROL_NAMES = {"names": "reference named as a visible distractor (control)",
                  "direction": "direction reversed (control)"}
+GOAL_NAMES = "goal named as a visible distractor (control)"
+"""The names control's row where the setting has no reference (MO1G)."""
 
 
 def control_episodes(control: str, grid_config, episodes, seed: int):
@@ -40,14 +43,17 @@ def control_episodes(control: str, grid_config, episodes, seed: int):
 
 def changed_slots(control: str, episodes, keep, named) -> dict:
     """The slots the control writes into the instruction's text (where keep holds; elsewhere
-    the episode's own): {"reference_class": the named distractor's class} or {"direction": the
-    reversed direction}."""
+    the episode's own): {"reference_class" (no reference: "target_class"): the named
+    distractor's class} or {"direction": the reversed direction}."""
     if control == "direction":
         d = np.asarray(episodes.direction)
         return {"direction": np.where(keep, (d + 4) % 8, d)}
     grid = np.asarray(episodes.grid)
     cls = grid[np.arange(len(grid)), named[:, 0], named[:, 1]].astype(np.int32)
-    return {"reference_class": np.where(keep, cls, np.asarray(episodes.reference_class))}
+    ref = np.asarray(episodes.reference_class)
+    target = np.asarray(episodes.target_class)
+    return {"reference_class": np.where(keep & (ref > 0), cls, ref),
+            "target_class": np.where(keep & (ref <= 0), cls, target)}
 
 
 def control_rows(control: str, spec, modes, all_episodes: dict, mode_row,
@@ -68,14 +74,16 @@ def control_rows(control: str, spec, modes, all_episodes: dict, mode_row,
             changed[seed] = refill(changed[seed], **changed_slots(control, eps, keep[seed],
                                                                     named[seed]))
     rows = []
+    has_reference = grid_config.has_reference
+    label = CONTROL_NAMES[control] if has_reference or control != "names" else GOAL_NAMES
     for mode in modes:
-        row, rollout = mode_row(spec, mode, f"{METHOD_NAMES[mode]}, {CONTROL_NAMES[control]}",
-                                changed, keep)
+        row, rollout = mode_row(spec, mode, f"{METHOD_NAMES[mode]}, {label}", changed, keep)
         row["control"] = control
         row["control_episodes"] = int(sum(k.sum() for k in keep.values()))
         if named[next(iter(named))] is not None:
             cells = np.concatenate([named[s][keep[s]] for s in all_episodes])
-            reference = np.concatenate([np.asarray(all_episodes[s].reference)[keep[s]]
+            field = "reference" if has_reference else "target"
+            reference = np.concatenate([np.asarray(getattr(all_episodes[s], field))[keep[s]]
                                         for s in all_episodes])
             first = controls.named_first(rollout.positions, rollout.steps, cells, reference)
             row["named_first_percent"] = 100.0 * float(first.mean()) if first.size else 0.0

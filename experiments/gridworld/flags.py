@@ -122,8 +122,9 @@ def build_parser(spec: ExperimentSpec) -> argparse.ArgumentParser:
     p.add_argument("--control", choices=("names", "direction"), default=None,
                    help="add control rows: every mode again on the same episodes with one word "
                         "of the instruction changed: 'names' names a distractor seen at t = 0 "
-                        "as the reference (episodes with one; the row's named_first_percent: "
-                        "the agent stood on it before the true reference), 'direction' "
+                        "as the reference, or in mo1g as the goal (episodes with one; the "
+                        "row's named_first_percent: the agent stood on it before the true "
+                        "reference, in mo1g before the true target), 'direction' "
                         "reverses the direction word (SR and SPL show whether it was read)")
     p.add_argument("--posterior-denoiser", action="store_true",
                    help="add a row per planning mode planned with a denoiser that needs no "
@@ -199,9 +200,12 @@ def check_args(parser, args, spec):
         parser.error(str(e))
     if args.psi != "follow" and args.follow_mark != spec.follow_mark:
         parser.error("--follow-mark sets the follow psi's threshold: it needs --psi follow")
-    if args.control and not spec.grid_config().has_reference:
-        parser.error(f"--control {args.control} changes the reference or direction word, which "
-                     f"{spec.setting} instructions do not have")
+    if args.control == "direction" and not spec.grid_config().has_reference:
+        parser.error(f"--control direction reverses the direction word, which {spec.setting} "
+                     "instructions do not have")
+    if args.control == "names" and spec.setting == "1o1g":
+        parser.error("--control names names another visible object, and 1o1g episodes have "
+                     "one object")
     if args.posterior_denoiser and args.psi != "search":
         parser.error("--posterior-denoiser plans no path, so it serves --psi search only")
     return modes
