@@ -12,9 +12,8 @@ from experiments.harness import core as harness
 from experiments.harness.core import CHECKPOINT_ROOT, REPO_ROOT
 
 TRAINING_NAME = "compile_gridworld"
-"""One denoiser serves the three settings: it is trained on a fixed mixture of them
-(envs.gridworld.training.TRAINING_MIXTURE), which costs one training instead of three; the
-shipped checkpoint is checkpoints/compile_gridworld and `--train` of any setting trains it."""
+"""One denoiser, trained on a mixture of the three settings (envs.gridworld.training.
+TRAINING_MIXTURE), serves them all; `--train` of any setting trains it."""
 
 FAR_TRAINING_NAME = "compile_gridworld_far"
 """The P-MO2G-far denoiser (the paper settings' denoiser never trained on P-MO2G-far)."""
@@ -24,20 +23,17 @@ TRIGGER_WORDS = {"always": "before every move",
                  "on_change": "when new cells were seen or the sub-goal was reached",
                  "on_refuted": "when what was seen disproved the plan's guess or the sub-goal "
                                "was reached"}
-"""Each re-planning mode's default trigger: the paper-style on-the-fly row runs a full denoising
-before every move (the paper's Algorithm 1); the warm-start row, the cheap default, re-plans
-when the observation changed or the plan's sub-goal was reached."""
+"""Each re-planning mode's default trigger: paper-style on-the-fly before every move (the paper's
+Algorithm 1); warm start when the observation changed or the sub-goal was reached."""
 
 METHOD_NAMES = {"one_shot": "one-shot", "k_shot": "two-shot", "on_the_fly": "on-the-fly",
                 "warm_start": "warm-start on-the-fly"}
 
 LANGUAGE_CHOICES = {**harness.LANGUAGE_CHOICES, "natural": ("natural",)}
-"""--language: one phrasing, or "all" (canonical, paraphrased, unseen: never the sealed
-natural-language set, which is measured only when named and only with a denoiser on pretrained
-features, experiments.gridworld.text.languages_of)."""
+"""--language: one phrasing, or "all" (canonical, paraphrased, unseen; never the sealed natural
+set, measured only when named, experiments.gridworld.text.languages_of)."""
 
 CHECKPOINT_EVERY = 500
-"""Steps between the checkpoints of a grid-world --train run."""
 
 
 def method_name(mode_or_name: str, language: str = "canonical") -> str:
@@ -63,29 +59,22 @@ class ExperimentSpec:
     # name of the checkpoint it trains and evaluates (checkpoints/<name>, runs/<name>).
     mixture: tuple | None = None
     checkpoint_name: str = TRAINING_NAME
-    # Training recipe: 8000 steps of 64, 100 diffusion timesteps (~35-40 min here); the shipped
-    # checkpoint, SR and SR_ordered 100.0 on validation and evaluation episodes. Faster recipes
-    # measured (docs/benchmarks.md, bench_train): 10 timesteps reach SR and SR_ordered >= 99 on
-    # 500 validation P-MO2G episodes at step 2500 of 3000 (100 timesteps: step 3000), but on
-    # 1000 validation episodes their SR_ordered stays below this one's 100.0: 3000 steps (14.4
-    # min) 99.3 on-the-fly / 99.6 warm start, 4000 steps (18.8 min) 99.6 / 99.8.
+    # Training recipe: 8000 steps of 64, 100 diffusion timesteps (~35-40 min here). Shorter
+    # recipes (docs/benchmarks.md, bench_train) stay below its SR_ordered 100.0 on 1000
+    # validation episodes: 3000 steps 99.3 on-the-fly / 99.6 warm start, 4000: 99.6 / 99.8.
     train_steps: int = 8000
-    # With --text pretrained (None: train_steps): 5000 steps, chosen on validation seed 1000
-    # (a 1500-step run with the cells' name look-up, DenoiserConfig.cell_lookup, already read
-    # SR 100.0 / ordered 96.0 on 100 P-MO2G episodes; docs/results.md), so that the features
-    # model trains in about the token model's minutes (its text part makes each step slower).
+    # --text pretrained (None: train_steps): 5000 steps, about the token model's minutes (its
+    # steps are slower), chosen on validation seed 1000 (docs/results.md, "Any English").
     pretrained_train_steps: int | None = 5000
     num_train_timesteps: int = 100
     batch_size: int = 64
     lr: float = 1e-3
     warmup_steps: int = 200
     num_steps: int = 10
-    # Warm re-plans (the default of the warm-start row, chosen on validation seed 1000 x 1000
-    # P-MO2G episodes against paper-style on-the-fly, SR 100.0 at 152.2 calls/episode): the
-    # previous plan re-noised to step 1 of a 2-step schedule and denoised in one call, and only
-    # when new cells were seen or the sub-goal was reached (replan "on_change"): SR 100.0 at
-    # 11.5 calls/episode (3-step schedule: 100.0 at 22.0; re-planning before every move, 3/1:
-    # 100.0 at 31.4). Evaluation seeds 2001-2003: README, "Cheaper re-planning".
+    # Warm re-plans (the warm-start row; chosen on validation seed 1000 x 1000 P-MO2G episodes):
+    # the last plan re-noised to step 1 of a 2-step schedule, denoised in one call, only when
+    # new cells were seen or the sub-goal was reached: SR 100.0 at 11.5 calls/episode (paper-
+    # style on-the-fly: 152.2; 3-step schedule 22.0). docs/results.md, "Cheaper re-planning".
     warm_start_step: int = 1
     warm_num_steps: int | None = 2
     eval_batch: int = 250

@@ -34,7 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("text", help="the instruction, e.g. \"First go to the apple, then find the "
                                 "pear north of it.\"")
     p.add_argument("--world", choices=WORLDS, default="gridworld",
-                   help="the world (default gridworld; kuka: not yet)")
+                   help="the world (default gridworld; kuka: the Kuka blocks, planned by "
+                        "experiments/kuka/try_instruction.py, whose flags `--world kuka "
+                        "--help` shows)")
     p.add_argument("--setting", choices=sorted(SPECS), default="p_mo2g",
                    help="the grid-world setting of the episode (default p_mo2g)")
     p.add_argument("--seed", type=int, default=harness.DEFAULT_EVAL_SEED,
@@ -83,7 +85,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.world != "gridworld":
-        harness.fail(f"--world {args.world}: not yet (the grid world only, for now)")
+        harness.fail(f"--world {args.world} is planned by `python -m "
+                     f"experiments.try_instruction --world {args.world}`, not the grid world's")
     cli.check_at_least(parser, "--episode", args.episode, 0)
     cli.check_output_file(parser, "--json", args.json)
     if args.figure:
