@@ -86,7 +86,8 @@ def _print_summary(spec, args, seeds, result) -> None:
     print(ge.format_table(result["rows"]))
     for row in result["rows"]:
         if "named_first_percent" in row:
-            print(f"{row['method']}: stood on the named distractor before the true reference "
+            true = "reference" if spec.grid_config().has_reference else "target"
+            print(f"{row['method']}: stood on the named distractor before the true {true} "
                   f"in {row['named_first_percent']:.1f}% of {row['control_episodes']} episodes")
     if phrasings := tables.format_phrasings(result["rows"]):
         print(phrasings)
