@@ -121,6 +121,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     print(f"{'success' if result['success'] else 'failure'}{ordered}, {result['moves']} moves, "
           f"{result['denoiser_calls']} denoiser calls ({METHOD_NAMES[spec.main_mode]}, "
           f"{args.setting} seed {args.seed} episode {args.episode})")
+    print(f"(success is measured against the episode's own instruction: "
+          f"\"{text.texts(episodes, args.setting)[0]}\")")
     if args.figure:
         from experiments.gridworld.figures import write_figures
 
