@@ -66,6 +66,11 @@ WORLDS = {
              "The Kuka block-world denoiser shipped with diffplan (one model for stacking and "
              "rearrangement, single and multiple constraints, canonical and paraphrased "
              "instructions)."),
+    "kuka_pretrained": (os.path.join(CHECKPOINT_ROOT, "kuka_pretrained"),
+                        "python -m experiments.kuka_stacking --train --text pretrained",
+                        "The Kuka block-world denoiser on the frozen pretrained text encoder's "
+                        "features (checkpoints/text_encoder: any English instruction; one model "
+                        "for stacking and rearrangement, single and multiple constraints)."),
     **{f"babyai_{level}{bc}": (
         os.path.join(CHECKPOINT_ROOT, f"babyai_{level}{bc}"),
         f"python -m experiments.babyai --level {level} --train",
