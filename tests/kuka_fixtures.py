@@ -79,3 +79,16 @@ def training_tokens(broad: bool, step: int) -> np.ndarray:
 @functools.lru_cache(maxsize=None)
 def _batch_fn(recipe):
     return jax.jit(recipe.batch_fn(), static_argnums=1)
+
+
+def strict_counts(episodes, final, strict) -> tuple[int, int]:
+    """(held, total) instructed constraints of a batch, each strict success (``strict`` bool
+    (N, K), experiments.kuka.eval.constraint_success) checked against the final physical poses
+    in plain numpy (:func:`numpy_on`); padding constraints (top < 0) left out."""
+    held = total = 0
+    for i, constraints in enumerate(np.asarray(episodes.constraints)):
+        for (top, bottom), ok in zip(constraints, strict[i]):
+            if top >= 0:
+                assert ok == numpy_on(final["block_pos"][i], final["held"][i], top, bottom)
+                held, total = held + int(ok), total + 1
+    return held, total
